@@ -1,0 +1,1 @@
+"""netsim: the emulated environment (world truth, sensors, radio channel, faults, clock)."""

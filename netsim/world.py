@@ -1,0 +1,96 @@
+"""World truth and sensors: how the platforms really move and what their sensors report.
+
+Every random draw comes from the scenario seed through independent streams (motion, odometry,
+ranging, radio), so changing the radio model never changes the trajectories or the noise.
+Tick 0 is the start: platforms at their known start points, an empty sensor frame; ticks
+1..steps each cover one dt of motion.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from swarmloc.messages import OdometryMsg, RangeMsg, Sensors
+from swarmloc.scenario import CircleMotion, Scenario
+
+
+def streams(seed: int) -> dict[str, np.random.Generator]:
+    names = ("motion", "odometry", "range", "radio")
+    children = np.random.SeedSequence(seed).spawn(len(names))
+    return {n: np.random.default_rng(c) for n, c in zip(names, children)}
+
+
+class World:
+    def __init__(self, scenario: Scenario, seed: int | None = None):
+        self.sc = scenario
+        self.rng = streams(scenario.seed if seed is None else seed)
+        self.dt = scenario.clock.dt
+        self.ids = scenario.agent_ids
+        self.k = -1
+        self.t = 0.0
+        self.pos = {a.id: np.array(a.start, float) for a in scenario.world.agents}
+        self.heading = {a.id: float(a.heading) for a in scenario.world.agents}
+        self.turn = {a.id: self._initial_turn(a.motion) for a in scenario.world.agents}
+        # The odometry's own heading: the integral of the measured turn rate from the known start.
+        self.heading_est = dict(self.heading)
+        self.heading_var = {a: 0.0 for a in self.ids}
+
+    @staticmethod
+    def _initial_turn(motion) -> float:
+        return motion.turn_rate if isinstance(motion, CircleMotion) else 0.0
+
+    @property
+    def steps(self) -> int:
+        return self.sc.clock.steps
+
+    def positions(self) -> dict[int, np.ndarray]:
+        return {a: p.copy() for a, p in self.pos.items()}
+
+    def step(self) -> dict[int, Sensors]:
+        """Advance to the next tick; return every agent's sensor frame for it."""
+        self.k += 1
+        if self.k == 0:
+            return {a: self._frame(a, OdometryMsg(0.0, 0.0, self.heading_est[a], 0.0, 0.0), []) for a in self.ids}
+        self.t = self.k * self.dt
+        odo_cfg = self.sc.sensors.odometry
+        odometry = {}
+        for spec in self.sc.world.agents:
+            a, m = spec.id, spec.motion
+            speed = m.speed
+            # Odometry over this step uses the heading the platform believes it had at its start.
+            v_meas = speed + self.rng["odometry"].normal(0.0, odo_cfg.speed_noise)
+            odometry[a] = OdometryMsg(self.dt, float(v_meas), self.heading_est[a], odo_cfg.speed_noise, math.sqrt(self.heading_var[a]))
+            h = self.heading[a]
+            self.pos[a] = self.pos[a] + self.dt * speed * np.array([math.cos(h), math.sin(h)])
+            w_meas = self.turn[a] + self.rng["odometry"].normal(0.0, odo_cfg.turn_rate_noise)
+            self.heading[a] = h + self.dt * self.turn[a]
+            self.heading_est[a] += self.dt * w_meas
+            self.heading_var[a] += (self.dt * odo_cfg.turn_rate_noise) ** 2
+            if not isinstance(m, CircleMotion):
+                decay = math.exp(-self.dt / m.turn_rate_tau)
+                self.turn[a] = decay * self.turn[a] + m.turn_rate_std * math.sqrt(1 - decay**2) * self.rng["motion"].normal()
+        ranges = self._ranges()
+        return {a: self._frame(a, odometry[a], ranges.get(a, [])) for a in self.ids}
+
+    def _frame(self, a, odo, ranges) -> Sensors:
+        return Sensors(self.k, self.t, odo, ranges)
+
+    def _ranges(self) -> dict[int, list[RangeMsg]]:
+        """Up to max_per_step measurements among distinct ordered pairs within sensing range."""
+        cfg = self.sc.sensors.range
+        rng = self.rng["range"]
+        pairs = [(m, n) for m in self.ids for n in self.ids
+                 if m != n and np.linalg.norm(self.pos[m] - self.pos[n]) <= cfg.max_range]
+        out: dict[int, list[RangeMsg]] = {}
+        for _ in range(cfg.max_per_step):
+            happens = rng.random() < cfg.probability
+            pick = rng.integers(len(pairs)) if pairs else 0
+            noise = rng.normal(0.0, cfg.noise)
+            if not (happens and pairs):
+                continue
+            m, n = pairs.pop(pick)
+            dist = float(np.linalg.norm(self.pos[m] - self.pos[n]))
+            out.setdefault(m, []).append(RangeMsg(n, max(dist + noise, 0.0), cfg.noise))
+        return out

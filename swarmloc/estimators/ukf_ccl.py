@@ -1,0 +1,71 @@
+"""UKF-CCL: the centralized UKF over the joint state of the whole swarm, the gold standard.
+
+It sees every platform's odometry and every relative measurement, processes the measurements
+of a tick in the same key order (measurer, measured, index) as the distributed chains, and
+factors P with the measuring and measured platform first (eq. 17).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg
+
+from swarmloc import kalman
+from swarmloc.messages import Sensors
+from swarmloc.models import MOTION_MODELS, Range
+from swarmloc.node import Estimate, odometry_of
+
+
+class CentralizedUKF:
+    algorithm = "ukf-ccl"
+
+    def __init__(self, x0: dict[int, np.ndarray], P0: np.ndarray, model="planar-speed-heading", spread: float = 3.0):
+        self.model = MOTION_MODELS[model] if isinstance(model, str) else model
+        self.ids = sorted(x0)
+        self.index = {a: i for i, a in enumerate(self.ids)}
+        self.d = self.model.state_dim
+        self.x = np.concatenate([np.asarray(x0[a], float) for a in self.ids])
+        self.P = scipy.linalg.block_diag(*[np.asarray(P0, float)] * len(self.ids))
+        self.ut = kalman.UnscentedTransform(spread)
+        self.meas = Range(self.model)
+        self.k = -1
+
+    def block(self, a: int) -> slice:
+        i = self.index[a]
+        return slice(i * self.d, (i + 1) * self.d)
+
+    def step(self, frames: dict[int, Sensors]) -> None:
+        """One tick: every platform's time update, then the tick's measurements in key order."""
+        Fs, Qs = [], []
+        for a in self.ids:
+            x, F, Q = self.model.predict(self.x[self.block(a)], odometry_of(frames[a]))
+            self.x[self.block(a)] = x
+            Fs.append(F)
+            Qs.append(Q)
+        self.x, self.P = kalman.predict(self.x, self.P, scipy.linalg.block_diag(*Fs), scipy.linalg.block_diag(*Qs))
+        self.k = frames[self.ids[0]].k
+        for m, n, z, R in self.measurements(frames):
+            self.update(m, n, z, R)
+
+    @staticmethod
+    def measurements(frames: dict[int, Sensors]):
+        keyed = []
+        for m, s in frames.items():
+            counts: dict[int, int] = {}
+            for r in s.ranges:
+                q = counts.get(r.target, 0)
+                counts[r.target] = q + 1
+                if r.target != m:
+                    keyed.append(((m, r.target, q), np.array([r.range]), np.array([[r.std**2]])))
+        for (m, n, _), z, R in sorted(keyed, key=lambda t: t[0]):
+            yield m, n, z, R
+
+    def update(self, m: int, n: int, z: np.ndarray, R: np.ndarray) -> None:
+        S = kalman.permuted_cholesky(self.P, [self.index[m], self.index[n]], self.d)
+        idx = np.r_[self.block(m), self.block(n)]
+        z_bar, Pzz, Y = self.ut.measurement_moments(self.x, S, lambda X: self.meas.h_joint(X[..., idx]))
+        self.x, self.P, _ = kalman.update(self.x, self.P, S @ Y, Pzz + R, z - z_bar)
+
+    def estimate(self, a: int) -> Estimate:
+        b = self.block(a)
+        return Estimate(self.k, self.x[b].copy(), self.P[b, b].copy())

@@ -1,0 +1,186 @@
+"""Every message type swarmloc puts on the wire, in one registry (see swarmloc.wire).
+
+Adding an estimator family means adding its radio messages here, so docs/wire.md and the
+decoder's validation stay complete in one place.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import numpy as np
+
+from swarmloc.wire import Array, Bool, Float, Int, ListOf, MapOf, Nested, Plain, Str, message
+
+Id = Annotated[int, Int(0, 2**31)]
+Tick = Annotated[int, Int(0, 2**40)]
+Vec = Annotated[np.ndarray, Array(1)]
+Mat = Annotated[np.ndarray, Array(2)]
+SqMat = Annotated[np.ndarray, Array(2, square=True)]
+Blocks = Annotated[dict, MapOf(Int(0, 2**31), Array(2))]
+# A chain key: (measurer, measured, index within the tick); chains run in this order.
+ChainKey = ListOf(Int(0, 2**31), length=3)
+
+
+# --------------------------------------------------------------------------- environment -> agent
+
+
+@message("clock")
+class Clock:
+    k: Tick
+    t: Annotated[float, Float()]
+    mode: Annotated[str, Str(16)]
+    dt: Annotated[float, Float(lo=0.0)]
+
+
+@message("odometry")
+class OdometryMsg:
+    dt: Annotated[float, Float(lo=0.0)]
+    speed: Annotated[float, Float()]
+    heading: Annotated[float, Float()]
+    speed_std: Annotated[float, Float(lo=0.0)]
+    heading_std: Annotated[float, Float(lo=0.0)]
+
+
+@message("range")
+class RangeMsg:
+    target: Id
+    range: Annotated[float, Float(lo=0.0)]
+    std: Annotated[float, Float(lo=0.0)]
+
+
+@message("sensors")
+class Sensors:
+    """One agent's sensor frame for tick k; relative measurements in the order they were taken."""
+
+    k: Tick
+    t: Annotated[float, Float()]
+    odometry: Annotated[OdometryMsg, Nested(OdometryMsg)]
+    ranges: Annotated[list, ListOf(Nested(RangeMsg), max_len=64)]
+
+
+@message("truth")
+class Truth:
+    k: Tick
+    t: Annotated[float, Float()]
+    state: Vec
+
+
+# --------------------------------------------------------------------------- agent -> anyone
+
+
+@message("estimate")
+class EstimateMsg:
+    k: Tick
+    algorithm: Annotated[str, Str(32)]
+    mean: Vec
+    cov: SqMat
+
+
+@message("done")
+class Done:
+    """Lockstep acknowledgement: tick k handled, `consumed` = last netsim delivery number handled,
+    `sent` = radio frames published so far."""
+
+    k: Tick
+    consumed: Annotated[int, Int(0)]
+    sent: Annotated[int, Int(0)]
+
+
+# --------------------------------------------------------------------------- radio payloads
+
+
+@message("beacon")
+class Beacon:
+    """Periodic hello: who I am and where I think I am (neighbour discovery)."""
+
+    k: Tick
+    position: Vec
+
+
+@message("dcl.start")
+class DclStart:
+    """UKF-DCL, measurer m -> measured n: the measurement and m's side of the pair."""
+
+    k: Tick
+    epoch: Annotated[int, Int(0)]
+    key: Annotated[list, ChainKey]
+    z: Vec
+    R: SqMat
+    x_m: Vec
+    row_m: Blocks
+    pending: Annotated[list, ListOf(ChainKey)]
+
+
+@message("dcl.token")
+class DclToken:
+    """UKF-DCL location information travelling the chain (depth first, with backtracking).
+
+    L is the lower Cholesky factor of the (m, n) covariance block (A11, A21, A22), Y the
+    sigma-point term with Pxz_i = [P_im P_in] L^-T Y, so any node forms its update weight from
+    its own row alone (eq. 20). Gains accumulate as nodes join; nothing is applied until commit.
+    """
+
+    k: Tick
+    epoch: Annotated[int, Int(0)]
+    key: Annotated[list, ChainKey]
+    L: SqMat
+    Y: Mat
+    Pz: SqMat
+    nu: Vec
+    order: Annotated[list, ListOf(Int(0, 2**31))]
+    parent: Annotated[dict, MapOf(Int(0, 2**31), Int(0, 2**31))]
+    gains: Blocks
+    xz: Blocks
+    pending: Annotated[list, ListOf(ChainKey)]
+
+
+@message("dcl.commit")
+class DclCommit:
+    """UKF-DCL commit, flooded down the chain's tree from the measurer once every gain is known."""
+
+    k: Tick
+    epoch: Annotated[int, Int(0)]
+    key: Annotated[list, ChainKey]
+    Pz: SqMat
+    nu: Vec
+    parent: Annotated[dict, MapOf(Int(0, 2**31), Int(0, 2**31))]
+    gains: Blocks
+    xz: Blocks
+    pending: Annotated[list, ListOf(ChainKey)]
+
+
+# --------------------------------------------------------------------------- netsim control & monitoring
+
+
+@message("control")
+class Control:
+    """Request to netsim/control: op is one of cut, restore, status (docs/wire.md)."""
+
+    op: Annotated[str, Str(32)]
+    args: Annotated[dict, Plain()]
+
+
+@message("reply")
+class Reply:
+    ok: Annotated[bool, Bool()]
+    error: Annotated[str, Str(512)]
+    data: Annotated[dict, Plain()]
+
+
+@message("link")
+class LinkMsg:
+    a: Id
+    b: Id
+    up: Annotated[bool, Bool()]
+    distance: Annotated[float, Float(finite=False)]
+    reason: Annotated[str, Str(32)]
+    delivered: Annotated[int, Int(0)]
+    dropped: Annotated[int, Int(0)]
+
+
+@message("links")
+class Links:
+    k: Tick
+    links: Annotated[list, ListOf(Nested(LinkMsg), max_len=4096)]
+

@@ -1,0 +1,72 @@
+"""The sans-I/O node protocol every estimator implements.
+
+A node is a state machine: it is handed a tick (the agent's sensor frame) or a radio message,
+and returns the radio messages it wants sent. It never opens a socket, starts a thread or
+reads a clock, so the same object runs in the in-process runner and in the agent daemon.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from swarmloc.messages import Sensors
+from swarmloc.models import MOTION_MODELS, MotionModel, Odometry
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Send:
+    """A radio message to `dst`, or to every neighbour in range when dst is None."""
+
+    msg: Any
+    dst: int | None = None
+
+
+@dataclass(frozen=True)
+class Estimate:
+    k: int
+    mean: np.ndarray
+    cov: np.ndarray
+
+
+def odometry_of(s: Sensors) -> Odometry:
+    o = s.odometry
+    return Odometry(o.dt, o.speed, o.heading, o.speed_std, o.heading_std)
+
+
+class Node:
+    """Base class: identity, model, estimate and the drop counter shared by every algorithm."""
+
+    algorithm: str = ""
+
+    def __init__(self, aid: int, x0, P0, model: MotionModel | str = "planar-speed-heading"):
+        self.id = int(aid)
+        self.model = MOTION_MODELS[model] if isinstance(model, str) else model
+        self.k = -1
+        self.x = np.array(x0, dtype=float)
+        self.P = np.array(P0, dtype=float)
+        if self.x.shape != (self.model.state_dim,) or self.P.shape != (self.model.state_dim,) * 2:
+            raise ValueError(f"x0/P0 do not match {self.model.name} (state_dim {self.model.state_dim})")
+        self.drops: Counter[str] = Counter()
+
+    def step(self, sensors: Sensors) -> list[Send]:
+        """Handle the sensor frame of tick sensors.k (time update first, then measurements)."""
+        raise NotImplementedError
+
+    def receive(self, src: int, msg: Any) -> list[Send]:
+        """Handle a radio message from `src`. Never raises on bad content: it counts a drop."""
+        return []
+
+    def estimate(self) -> Estimate:
+        return Estimate(self.k, self.x.copy(), self.P.copy())
+
+    def drop(self, reason: str, detail: str = "") -> list[Send]:
+        self.drops[reason] += 1
+        log.debug("node %s drops frame: %s %s", self.id, reason, detail)
+        return []

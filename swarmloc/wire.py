@@ -1,0 +1,367 @@
+"""The wire: key expressions, the MessagePack envelope and validated decoding.
+
+Everything that crosses a process boundary is encoded and decoded here, so netsim, the agent
+daemon and any other implementation agree by construction. docs/wire.md is the spec; this
+module is its executable form. No Zenoh import: keys are plain strings, sessions live in the
+processes.
+
+A message type is a frozen dataclass registered with @message("name"); each field is
+annotated with a Spec that both encodes and validates it. Decoding never trusts a peer:
+types, shapes, finiteness and sizes are checked, and every failure raises WireError with the
+field path, which the receiver counts and logs before dropping the frame.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import typing
+from dataclasses import dataclass
+from typing import Annotated, Any, ClassVar
+
+import msgpack
+import numpy as np
+
+SCHEMA_VERSION = 1
+MAX_FRAME_BYTES = 64 * 1024
+MAX_ARRAY_ELEMENTS = 4096
+MAX_COLLECTION = 1024
+
+
+class WireError(ValueError):
+    """A frame that does not decode to a valid message; the reason names the field."""
+
+
+# --------------------------------------------------------------------------- field specs
+
+
+class Spec:
+    def encode(self, v: Any) -> Any:
+        return v
+
+    def decode(self, v: Any, path: str) -> Any:
+        raise NotImplementedError
+
+
+class Int(Spec):
+    def __init__(self, lo: int | None = None, hi: int | None = None):
+        self.lo, self.hi = lo, hi
+
+    def encode(self, v):
+        return int(v)
+
+    def decode(self, v, path):
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise WireError(f"{path}: expected int, got {type(v).__name__}")
+        if (self.lo is not None and v < self.lo) or (self.hi is not None and v > self.hi):
+            raise WireError(f"{path}: {v} out of range [{self.lo}, {self.hi}]")
+        return v
+
+
+class Float(Spec):
+    def __init__(self, finite: bool = True, lo: float | None = None):
+        self.finite, self.lo = finite, lo
+
+    def encode(self, v):
+        return float(v)
+
+    def decode(self, v, path):
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise WireError(f"{path}: expected float, got {type(v).__name__}")
+        v = float(v)
+        if self.finite and not math.isfinite(v):
+            raise WireError(f"{path}: not finite")
+        if self.lo is not None and v < self.lo:
+            raise WireError(f"{path}: {v} below {self.lo}")
+        return v
+
+
+class Bool(Spec):
+    def decode(self, v, path):
+        if not isinstance(v, bool):
+            raise WireError(f"{path}: expected bool, got {type(v).__name__}")
+        return v
+
+
+class Str(Spec):
+    def __init__(self, max_len: int = 64):
+        self.max_len = max_len
+
+    def decode(self, v, path):
+        if not isinstance(v, str):
+            raise WireError(f"{path}: expected str, got {type(v).__name__}")
+        if len(v) > self.max_len:
+            raise WireError(f"{path}: string longer than {self.max_len}")
+        return v
+
+
+class Array(Spec):
+    """float64 array as {dtype, shape, data}; `ndim` fixed, each dim at most MAX_ARRAY_ELEMENTS."""
+
+    def __init__(self, ndim: int, square: bool = False):
+        self.ndim, self.square = ndim, square
+
+    def encode(self, v):
+        a = np.ascontiguousarray(v, dtype="<f8")
+        return {"dtype": "<f8", "shape": list(a.shape), "data": a.tobytes()}
+
+    def decode(self, v, path):
+        if not isinstance(v, dict) or set(v) != {"dtype", "shape", "data"}:
+            raise WireError(f"{path}: expected array map with dtype, shape, data")
+        if v["dtype"] != "<f8":
+            raise WireError(f"{path}: dtype {v['dtype']!r} not allowed (only '<f8')")
+        shape = v["shape"]
+        if not isinstance(shape, list) or len(shape) != self.ndim or not all(
+            isinstance(s, int) and not isinstance(s, bool) and 0 <= s <= MAX_ARRAY_ELEMENTS for s in shape
+        ):
+            raise WireError(f"{path}: bad shape {shape!r} (want {self.ndim} dims)")
+        if self.square and len(set(shape)) != 1:
+            raise WireError(f"{path}: shape {shape} not square")
+        count = math.prod(shape)
+        if count > MAX_ARRAY_ELEMENTS:
+            raise WireError(f"{path}: {count} elements exceed {MAX_ARRAY_ELEMENTS}")
+        data = v["data"]
+        if not isinstance(data, bytes) or len(data) != 8 * count:
+            raise WireError(f"{path}: data length does not match shape {shape}")
+        a = np.frombuffer(data, dtype="<f8").reshape(shape).copy()
+        if not np.isfinite(a).all():
+            raise WireError(f"{path}: non-finite values")
+        return a
+
+
+class ListOf(Spec):
+    def __init__(self, item: Spec, max_len: int = MAX_COLLECTION, length: int | None = None):
+        self.item, self.max_len, self.length = item, max_len, length
+
+    def encode(self, v):
+        return [self.item.encode(x) for x in v]
+
+    def decode(self, v, path):
+        if not isinstance(v, list):
+            raise WireError(f"{path}: expected list, got {type(v).__name__}")
+        if len(v) > self.max_len or (self.length is not None and len(v) != self.length):
+            raise WireError(f"{path}: bad length {len(v)}")
+        return [self.item.decode(x, f"{path}[{i}]") for i, x in enumerate(v)]
+
+
+class MapOf(Spec):
+    def __init__(self, key: Spec, value: Spec, max_len: int = MAX_COLLECTION):
+        self.key, self.value, self.max_len = key, value, max_len
+
+    def encode(self, v):
+        return {self.key.encode(k): self.value.encode(x) for k, x in v.items()}
+
+    def decode(self, v, path):
+        if not isinstance(v, dict):
+            raise WireError(f"{path}: expected map, got {type(v).__name__}")
+        if len(v) > self.max_len:
+            raise WireError(f"{path}: {len(v)} entries exceed {self.max_len}")
+        return {self.key.decode(k, f"{path}.key"): self.value.decode(x, f"{path}[{k!r}]") for k, x in v.items()}
+
+
+class Optional(Spec):
+    def __init__(self, inner: Spec):
+        self.inner = inner
+
+    def encode(self, v):
+        return None if v is None else self.inner.encode(v)
+
+    def decode(self, v, path):
+        return None if v is None else self.inner.decode(v, path)
+
+
+class Nested(Spec):
+    def __init__(self, cls: type):
+        self.cls = cls
+
+    def encode(self, v):
+        return encode_body(v)
+
+    def decode(self, v, path):
+        return decode_body(self.cls, v, path)
+
+
+class Plain(Spec):
+    """Free-form msgpack data (control requests and replies): bounded size, no arrays."""
+
+    def decode(self, v, path):
+        def walk(x, depth):
+            if depth > 6:
+                raise WireError(f"{path}: nested too deep")
+            if isinstance(x, dict):
+                if len(x) > MAX_COLLECTION:
+                    raise WireError(f"{path}: map too large")
+                for k, y in x.items():
+                    walk(k, depth + 1)
+                    walk(y, depth + 1)
+            elif isinstance(x, list):
+                if len(x) > MAX_COLLECTION:
+                    raise WireError(f"{path}: list too large")
+                for y in x:
+                    walk(y, depth + 1)
+            elif not (x is None or isinstance(x, (bool, int, float, str))):
+                raise WireError(f"{path}: {type(x).__name__} not allowed")
+
+        walk(v, 0)
+        return v
+
+
+# --------------------------------------------------------------------------- registry
+
+REGISTRY: dict[str, type] = {}
+
+
+def message(name: str):
+    """Register a dataclass as wire message type `name`; its Annotated specs define the body."""
+
+    def wrap(cls):
+        cls = dataclass(frozen=True)(cls)
+        hints = typing.get_type_hints(cls, include_extras=True)
+        specs = {}
+        for f in dataclasses.fields(cls):
+            meta = getattr(hints[f.name], "__metadata__", ())
+            spec = next((m for m in meta if isinstance(m, Spec)), None)
+            if spec is None:
+                raise TypeError(f"{cls.__name__}.{f.name} has no wire Spec")
+            specs[f.name] = spec
+        cls.TYPE = name
+        cls._specs = specs
+        if name in REGISTRY:
+            raise TypeError(f"message type {name!r} registered twice")
+        REGISTRY[name] = cls
+        return cls
+
+    return wrap
+
+
+def encode_body(msg) -> dict:
+    return {name: spec.encode(getattr(msg, name)) for name, spec in msg._specs.items()}
+
+
+def decode_body(cls, body, path="body"):
+    if not isinstance(body, dict):
+        raise WireError(f"{path}: expected map")
+    specs = cls._specs
+    extra = set(body) - set(specs)
+    if extra:
+        raise WireError(f"{path}: unknown fields {sorted(map(str, extra))}")
+    missing = set(specs) - set(body)
+    if missing:
+        raise WireError(f"{path}: missing fields {sorted(missing)}")
+    return cls(**{name: spec.decode(body[name], f"{path}.{name}") for name, spec in specs.items()})
+
+
+@dataclass(frozen=True)
+class Envelope:
+    """What every payload on the wire is: who sent which message, in which order, to whom."""
+
+    type: str
+    src: int
+    seq: int
+    body: Any
+    dst: int | None = None  # radio frames only: None means broadcast
+
+    KEYS: ClassVar[frozenset] = frozenset({"v", "type", "src", "seq", "dst", "body"})
+
+
+def encode(msg, src: int, seq: int, dst: int | None = None) -> bytes:
+    env = {"v": SCHEMA_VERSION, "type": msg.TYPE, "src": int(src), "seq": int(seq), "dst": dst, "body": encode_body(msg)}
+    return msgpack.packb(env, use_bin_type=True)
+
+
+def decode(data: bytes, expect: tuple[type, ...] | None = None) -> Envelope:
+    """Validate and decode a frame; raises WireError naming the problem."""
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise WireError("payload is not bytes")
+    if len(data) > MAX_FRAME_BYTES:
+        raise WireError(f"frame of {len(data)} bytes exceeds {MAX_FRAME_BYTES}")
+    try:
+        env = msgpack.unpackb(bytes(data), raw=False, strict_map_key=False, max_bin_len=MAX_FRAME_BYTES)
+    except Exception as exc:  # msgpack raises several unrelated exception types
+        raise WireError(f"not MessagePack: {exc.__class__.__name__}") from None
+    if not isinstance(env, dict) or not Envelope.KEYS.issuperset(env) or "body" not in env:
+        raise WireError("not an envelope")
+    if env.get("v") != SCHEMA_VERSION:
+        raise WireError(f"schema version {env.get('v')!r} not supported")
+    cls = REGISTRY.get(env.get("type")) if isinstance(env.get("type"), str) else None
+    if cls is None:
+        raise WireError(f"unknown message type {env.get('type')!r}")
+    if expect is not None and cls not in expect:
+        raise WireError(f"message type {cls.TYPE!r} not expected here")
+    src = Int(0, 2**31).decode(env.get("src"), "src")
+    seq = Int(0, 2**63).decode(env.get("seq"), "seq")
+    dst = Optional(Int(0, 2**31)).decode(env.get("dst"), "dst")
+    return Envelope(cls.TYPE, src, seq, decode_body(cls, env["body"]), dst)
+
+
+# --------------------------------------------------------------------------- key expressions
+
+
+class Keys:
+    """Key expressions of one swarm (docs/wire.md, "Keys")."""
+
+    def __init__(self, swarm: str):
+        if not swarm or any(c in swarm for c in "/*$#?"):
+            raise ValueError(f"bad swarm name {swarm!r}")
+        self.prefix = f"swarmloc/{swarm}"
+
+    clock = property(lambda self: f"{self.prefix}/clock")
+    control = property(lambda self: f"{self.prefix}/netsim/control")
+    links = property(lambda self: f"{self.prefix}/netsim/links")
+
+    def sensors(self, aid: int | str) -> str:
+        return f"{self.prefix}/agent/{aid}/sensors"
+
+    def estimate(self, aid: int | str) -> str:
+        return f"{self.prefix}/agent/{aid}/estimate"
+
+    def done(self, aid: int | str) -> str:
+        return f"{self.prefix}/agent/{aid}/done"
+
+    def alive(self, aid: int | str) -> str:
+        return f"{self.prefix}/agent/{aid}/alive"
+
+    def radio_tx(self, aid: int | str) -> str:
+        return f"{self.prefix}/radio/tx/{aid}"
+
+    def radio_rx(self, aid: int | str) -> str:
+        return f"{self.prefix}/radio/rx/{aid}"
+
+    def truth(self, aid: int | str) -> str:
+        return f"{self.prefix}/truth/{aid}"
+
+    @staticmethod
+    def agent_of(key: str) -> int:
+        """The agent id in .../agent/<id>/... or .../radio/{tx,rx}/<id>."""
+        parts = str(key).split("/")
+        for i, p in enumerate(parts[:-1]):
+            if p in ("agent", "tx", "rx", "truth"):
+                return int(parts[i + 1])
+        raise ValueError(f"no agent id in {key!r}")
+
+
+def zenoh_config(mode: str, listen: list[str] = (), connect: list[str] = ()) -> str:
+    """JSON5 for zenoh.Config.from_json5: loopback only, no multicast scouting.
+
+    Scouting is off so a test's sessions never find a stranger's on the same machine.
+    """
+    cfg = {
+        "mode": mode,
+        "listen": {"endpoints": list(listen)},
+        "connect": {"endpoints": list(connect)},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": mode == "peer"}},
+    }
+    return json.dumps(cfg)
+
+
+# Delivery attachments: netsim stamps every frame it hands an agent with a per-receiver
+# delivery number, so lockstep can tell "consumed what I delivered" from "consumed anything".
+def encode_delivery(n: int) -> bytes:
+    return int(n).to_bytes(8, "little")
+
+
+def decode_delivery(b: bytes | None) -> int | None:
+    if b is None or len(b) != 8:
+        return None
+    return int.from_bytes(b, "little")
