@@ -28,6 +28,7 @@ class Simulation:
         self.fault_log: list[dict] = []  # every fault applied, for the run directory
         self.delivered: Counter[tuple[int, int]] = Counter()
         self.dropped: Counter[tuple[int, int, str]] = Counter()
+        self.radio_log: list[tuple[int, int, int, int, str]] = []  # (k, src, receiver, size, drop reason or "")
         self.k, self.t = -1, 0.0
 
     # ---------------------------------------------------------------- clock
@@ -79,6 +80,7 @@ class Simulation:
                 self.dropped[(src, r, "unknown")] += 1
                 continue
             up, _, reason = self.link_state(src, r)
+            self.radio_log.append((self.k, src, r, size, reason))
             if up:
                 self.delivered[(src, r)] += 1
                 out.append((r, t + self.sc.radio.latency))
@@ -96,6 +98,18 @@ class Simulation:
                 rows.append({"a": a, "b": b, "up": up, "distance": dist, "reason": reason,
                              "delivered": delivered, "dropped": dropped})
         return rows
+
+    def radio_arrays(self) -> dict[str, np.ndarray]:
+        """Every frame reception attempt, for radio.npz (docs/run-format.md)."""
+        rows = self.radio_log
+        return {
+            "k": np.array([r[0] for r in rows], np.int64), "src": np.array([r[1] for r in rows], np.int64),
+            "receiver": np.array([r[2] for r in rows], np.int64), "size": np.array([r[3] for r in rows], np.int64),
+            "delivered": np.array([r[4] == "" for r in rows], bool), "reason": np.array([r[4] for r in rows], dtype="U16"),
+            "fault_t": np.array([f["t"] for f in self.fault_log], float),
+            "fault_action": np.array([f["action"] for f in self.fault_log], dtype="U16"),
+            "fault_link": np.array([f["link"] for f in self.fault_log], np.int64).reshape(-1, 2),
+        }
 
     def radio_summary(self) -> dict:
         reasons: Counter[str] = Counter()

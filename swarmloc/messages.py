@@ -82,7 +82,7 @@ class Done:
     """Lockstep acknowledgement: tick k handled, `consumed` = last netsim delivery number handled,
     `sent` = radio frames published so far."""
 
-    k: Tick
+    k: Annotated[int, Int(-1, 2**40)]  # -1: no tick handled yet
     consumed: Annotated[int, Int(0)]
     sent: Annotated[int, Int(0)]
 

@@ -1,0 +1,3 @@
+from agents.cli import app
+
+app(prog_name="swarmloc")

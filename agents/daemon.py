@@ -1,0 +1,180 @@
+"""The agent daemon: one swarmloc node hosted over a Zenoh session.
+
+Zenoh runs subscriber callbacks on its own threads, and a slow callback stalls delivery, so
+callbacks only enqueue; the daemon's single loop decodes, drives the node and publishes. The
+node never sees Zenoh, and the daemon never does estimation.
+
+Two radio modes:
+- netsim (simulation): frames go to radio/tx/<id>; netsim decides who hears them and
+  delivers on radio/rx/<id>, stamped with a delivery number that lockstep counts.
+- direct (deployment): frames go straight to radio/rx/<dst> (or radio/rx/all for broadcast)
+  and the physical network decides.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass
+
+import zenoh
+
+from swarmloc import wire
+from swarmloc.messages import Clock, Done, EstimateMsg, Reply, Sensors
+from swarmloc.node import Node
+
+log = logging.getLogger("swarmloc.agent")
+
+BROADCAST = "all"
+
+
+@dataclass
+class AgentConfig:
+    swarm: str = "default"
+    connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    listen: tuple[str, ...] = ()
+    mode: str = "client"  # client of netsim's router in simulation; peer on a real swarm
+    direct: bool = False
+    exit_on_stop: bool = True
+
+
+class AgentDaemon:
+    def __init__(self, node: Node, cfg: AgentConfig):
+        self.node, self.cfg = node, cfg
+        self.keys = wire.Keys(cfg.swarm)
+        self.inbox: queue.SimpleQueue = queue.SimpleQueue()
+        self.seq = 0
+        self.sent = 0  # radio frames published
+        self.consumed = 0  # highest netsim delivery number handled
+        self.rejected: Counter[str] = Counter()
+        self.handled = 0
+        self._last_published = None
+        self._stop = threading.Event()
+
+    # ---------------------------------------------------------------- zenoh plumbing
+
+    def open(self) -> None:
+        conf = zenoh.Config.from_json5(wire.zenoh_config(self.cfg.mode, self.cfg.listen, self.cfg.connect))
+        self.session = zenoh.open(conf)
+        aid = self.node.id
+        block = dict(congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
+        put = self.inbox.put
+        self._subs = [
+            self.session.declare_subscriber(self.keys.sensors(aid), lambda s: put(("sensors", s.payload.to_bytes(), None))),
+            self.session.declare_subscriber(self.keys.radio_rx(aid), lambda s: put(("rx", s.payload.to_bytes(), s.attachment))),
+            self.session.declare_subscriber(self.keys.clock, lambda s: put(("clock", s.payload.to_bytes(), None))),
+        ]
+        if self.cfg.direct:
+            self._subs.append(self.session.declare_subscriber(self.keys.radio_rx(BROADCAST), lambda s: put(("rx", s.payload.to_bytes(), None))))
+        self._pub_tx = {} if self.cfg.direct else self.session.declare_publisher(self.keys.radio_tx(aid), **block)
+        self._pub_est = self.session.declare_publisher(self.keys.estimate(aid), **block)
+        self._pub_done = self.session.declare_publisher(self.keys.done(aid), **block)
+        self._block = block
+        self._stats_q = self.session.declare_queryable(self.keys.prefix + f"/agent/{aid}/stats", self._on_stats)
+        # Declared last: once netsim sees the token, every subscription above is in place.
+        self._token = self.session.liveliness().declare_token(self.keys.alive(aid))
+
+    def close(self) -> None:
+        try:
+            self._token.undeclare()
+        except Exception:
+            pass
+        self.session.close()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self.inbox.put(("stop", b"", None))
+
+    def stats(self) -> dict:
+        return {"id": self.node.id, "algorithm": self.node.algorithm, "k": self.node.k, "handled": self.handled,
+                "sent": self.sent, "consumed": self.consumed, "rejected": dict(self.rejected),
+                "node_drops": dict(self.node.drops), **getattr(self.node, "stats", {})}
+
+    def _on_stats(self, query) -> None:
+        query.reply(query.key_expr, wire.encode(Reply(True, "", self.stats()), self.node.id, 0))
+
+    # ---------------------------------------------------------------- loop
+
+    def run(self) -> None:
+        """Handle inputs until stopped (signal, stop clock, or stop())."""
+        while not self._stop.is_set():
+            kind, data, attachment = self.inbox.get()
+            if kind == "stop":
+                break
+            try:
+                self._handle(kind, data, attachment)
+            except Exception:  # a bug in a node must not take the agent down silently mid-swarm
+                self.rejected["node-error"] += 1
+                log.exception("agent %s: error handling %s", self.node.id, kind)
+
+    def _reject(self, kind: str, why: str) -> None:
+        self.rejected[kind] += 1
+        n = self.rejected[kind]
+        if n <= 10 or n % 1000 == 0:
+            log.warning("agent %s drops %s frame (%d so far): %s", self.node.id, kind, n, why)
+
+    def _handle(self, kind: str, data: bytes, attachment) -> None:
+        if kind == "clock":
+            try:
+                env = wire.decode(data, expect=(Clock,))
+            except wire.WireError as exc:
+                return self._reject("clock", str(exc))
+            if env.body.mode == "stop" and self.cfg.exit_on_stop:
+                self._stop.set()
+            return
+        if kind == "sensors":
+            try:
+                env = wire.decode(data, expect=(Sensors,))
+            except wire.WireError as exc:
+                return self._reject("sensors", str(exc))
+            sends = self.node.step(env.body)
+        else:
+            delivery = wire.decode_delivery(attachment.to_bytes() if attachment is not None else None)
+            if delivery is not None:
+                self.consumed = max(self.consumed, delivery)
+            try:
+                env = wire.decode(data)
+            except wire.WireError as exc:
+                self._reject("radio", str(exc))
+                sends = []
+            else:
+                sends = [] if env.src == self.node.id else self.node.receive(env.src, env.body)
+        self.handled += 1
+        for s in sends:
+            self._send(s)
+        self._publish_estimate()
+        self._pub_done.put(wire.encode(Done(self.node.k, self.consumed, self.sent), self.node.id, self.handled))
+
+    def _send(self, send) -> None:
+        self.seq += 1
+        data = wire.encode(send.msg, self.node.id, self.seq, send.dst)
+        if self.cfg.direct:
+            key = self.keys.radio_rx(BROADCAST if send.dst is None else send.dst)
+            pub = self._pub_tx.get(key)
+            if pub is None:
+                pub = self._pub_tx[key] = self.session.declare_publisher(key, **self._block)
+            pub.put(data)
+        else:
+            self._pub_tx.put(data)
+        self.sent += 1
+
+    def _publish_estimate(self) -> None:
+        e = self.node.estimate()
+        sig = (e.k, e.mean.tobytes(), e.cov.tobytes())
+        if sig == self._last_published or e.k < 0:
+            return
+        self._last_published = sig
+        self._pub_est.put(wire.encode(EstimateMsg(e.k, self.node.algorithm, e.mean, e.cov), self.node.id, self.handled))
+
+
+def run_agent(node: Node, cfg: AgentConfig) -> AgentDaemon:
+    daemon = AgentDaemon(node, cfg)
+    daemon.open()
+    try:
+        daemon.run()
+    finally:
+        daemon.close()
+    return daemon

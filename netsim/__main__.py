@@ -1,0 +1,53 @@
+"""python -m netsim: the network emulator process (normally started by `swarmloc run`)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import sys
+from pathlib import Path
+
+from netsim.server import NetsimServer, ServerConfig, SetupError
+from swarmloc import scenario as scenarios
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m netsim", description=__doc__)
+    p.add_argument("scenario", help="built-in scenario name or YAML path")
+    p.add_argument("--swarm", default="default")
+    p.add_argument("--listen", action="append", default=None, help="Zenoh endpoint (repeatable)")
+    p.add_argument("--out", type=Path, default=None)
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--no-plots", action="store_true")
+    p.add_argument("--join-timeout", type=float, default=30.0)
+    p.add_argument("--tick-timeout", type=float, default=10.0)
+    p.add_argument("-v", "--verbose", action="store_true")
+    a = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO if a.verbose else logging.WARNING,
+                        format="%(asctime)s netsim %(levelname)s %(message)s")
+    try:
+        sc = scenarios.load(a.scenario)
+        if a.seed is not None:
+            sc = sc.with_overrides(seed=a.seed)
+    except scenarios.ScenarioError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    cfg = ServerConfig(swarm=a.swarm, listen=tuple(a.listen or ["tcp/127.0.0.1:7447"]), out=a.out,
+                       join_timeout=a.join_timeout, tick_timeout=a.tick_timeout, plots=not a.no_plots)
+    try:
+        m = NetsimServer(sc, cfg).run()
+    except SetupError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 3
+    except KeyboardInterrupt:
+        return 130
+    if a.out is None:
+        print(json.dumps(m, default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
