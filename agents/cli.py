@@ -152,6 +152,8 @@ def run_swarm(sc_arg: str, out: Path | None, seed: int | None, swarm: str, port:
         net = procs.spawn("netsim", ["-m", "netsim", str(scenario_file), "--swarm", swarm, "--listen", endpoint,
                                      "--out", str(out), *([] if plots else ["--no-plots"])])
         _wait_listening(port, net)
+        if net.poll() is not None:
+            raise fail(f"netsim failed to start (exit code {net.returncode}):\n{procs.tail('netsim')}", 1)
         for a in sc.agent_ids:
             procs.spawn(f"agent-{a}", ["-m", "agents", "agent", "--id", str(a), "--scenario", str(scenario_file),
                                        "--swarm", swarm, "--connect", endpoint])

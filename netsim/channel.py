@@ -336,7 +336,7 @@ class UnitDisk(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    kind: Literal["unit_disk"] = "unit_disk"
+    model: Literal["unit-disk"] = Field("unit-disk", description="Discriminator for config files.")
     range_m: float = Field(math.inf, gt=0, description="Delivery radius (m); inclusive.")
     latency_s: float = Field(0.0, ge=0, description="Fixed one-hop latency (s).")
     jitter_s: float = Field(0.0, ge=0, description="Extra latency drawn from U[0, jitter_s) (s).")
@@ -414,7 +414,7 @@ class LogDistance(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    kind: Literal["log_distance"] = "log_distance"
+    model: Literal["log-distance"] = Field("log-distance", description="Discriminator for config files.")
 
     # --- propagation ------------------------------------------------------
     carrier_hz: float = Field(2.4e9, gt=0, description="Carrier frequency (Hz); 2.4 GHz ISM band.")
@@ -434,13 +434,14 @@ class LogDistance(BaseModel):
     shadowing_sigma_db: float = Field(
         4.0,
         ge=0,
-        description="Log-normal shadowing std (dB); measured values span ~4-12 dB (Rappaport 4.9; Goldsmith 2.7).",
+        description="Log-normal shadowing std (dB); measurements span 4-13 dB (Goldsmith, Wireless "
+        "Communications, 2005, sec. 2.7); 4 dB is a mildly cluttered outdoor site.",
     )
     shadowing_decorrelation_m: float = Field(
         20.0,
         gt=0,
         description="Gudmundson (1991) decorrelation distance (m): rho = exp(-delta_d / d_corr). "
-        "Goldsmith 2.8: order of the blocking objects, 10-100 m outdoors.",
+        "Goldsmith sec. 2.7: the size of the blocking objects, tens of metres outdoors.",
     )
 
     # --- receiver ---------------------------------------------------------
@@ -645,8 +646,8 @@ class LogDistance(BaseModel):
         return rx, snr_db, pdr, pdr >= 0.5
 
 
-ChannelConfig = Annotated[Union[UnitDisk, LogDistance], Field(discriminator="kind")]
-"""Config-file friendly union: ``{"kind": "log_distance", ...}`` or ``{"kind": "unit_disk", ...}``."""
+ChannelConfig = Annotated[Union[UnitDisk, LogDistance], Field(discriminator="model")]
+"""Config-file union: ``{"model": "log-distance", ...}`` or ``{"model": "unit-disk", ...}``."""
 
 
 # --------------------------------------------------------------------------- #
@@ -694,6 +695,13 @@ class _ShadowField:
         self._s = s
         self._pos = pos
         self._index = {node: k for k, node in enumerate(ids)}
+
+    def pair(self, a: int, b: int) -> float:
+        """Shadowing (dB) between ``a`` and ``b``; 0 if either is unknown."""
+        if self._sigma == 0.0:
+            return 0.0
+        ia, ib = self._index.get(a), self._index.get(b)
+        return 0.0 if ia is None or ib is None else float(self._s[ia, ib])
 
     def get(self, a: int, others: Sequence[int]) -> FloatArray:
         """Shadowing (dB) between ``a`` and each of ``others``; 0 for unknown nodes."""
@@ -840,7 +848,7 @@ class RadioMedium:
 
     def shadowing_db(self, a: int, b: int) -> float:
         """Current shadowing loss (dB) between ``a`` and ``b``; symmetric."""
-        return float(self._shadow.get(a, [b])[0])
+        return self._shadow.pair(a, b)
 
     # --- internals ------------------------------------------------------------
     def _push(self, t: float, kind: int, payload: object) -> None:
@@ -879,8 +887,8 @@ class RadioMedium:
         heard = [x for x in self._txs if x.src != src and x.start <= t < x.end]
         if not heard:
             return None
-        dist = np.array([np.linalg.norm(x.pos - pos) for x in heard])
-        shadow = np.array([self._shadow.get(x.src, [src])[0] for x in heard])
+        dist = np.linalg.norm(np.array([x.pos for x in heard]) - pos, axis=1)
+        shadow = np.array([self._shadow.pair(x.src, src) for x in heard])
         power = self._model.rx_power_dbm(dist, shadow)
         ends = [x.end for x, p in zip(heard, power.tolist()) if p >= cca_dbm]
         return max(ends) if ends else None

@@ -42,7 +42,7 @@ class InProcessRunner:
         self.seq = {a: 0 for a in nodes}
         self.frames = 0
 
-    def run(self, record: RunRecord | None = None, on_tick: Callable[[int], None] | None = None) -> RunRecord:
+    def run(self, record: RunRecord | None = None, on_tick: Callable[[int, dict[int, Sensors]], None] | None = None) -> RunRecord:
         record = record or RunRecord(sorted(self.nodes), next(iter(self.nodes.values())).model.state_dim)
         for _ in range(self.env.steps + 1):
             k, t, frames = self.env.tick()
@@ -64,7 +64,7 @@ class InProcessRunner:
             for a, node in self.nodes.items():
                 record.add_estimate(node.algorithm, a, node.estimate())
             if on_tick:
-                on_tick(k)
+                on_tick(k, frames)
         return record
 
     def _transmit(self, queue, src, send, t, order) -> int:

@@ -522,9 +522,9 @@ def test_config_rejects_unknown_fields_and_parses_discriminated_union() -> None:
         LogDistance(pathloss=3.0)  # type: ignore[call-arg]
     with pytest.raises(ValidationError):
         UnitDisk(range_m=-1.0)
-    cfg = TypeAdapter(ChannelConfig).validate_python({"kind": "log_distance", "path_loss_exponent": 2.5})
+    cfg = TypeAdapter(ChannelConfig).validate_python({"model": "log-distance", "path_loss_exponent": 2.5})
     assert isinstance(cfg, LogDistance) and cfg.path_loss_exponent == 2.5
-    assert isinstance(TypeAdapter(ChannelConfig).validate_python({"kind": "unit_disk"}), UnitDisk)
+    assert isinstance(TypeAdapter(ChannelConfig).validate_python({"model": "unit-disk"}), UnitDisk)
     assert SPEED_OF_LIGHT_M_S == C
 
 
