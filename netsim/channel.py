@@ -718,7 +718,8 @@ class _ShadowField:
 # --------------------------------------------------------------------------- #
 # Medium
 # --------------------------------------------------------------------------- #
-_END = 0  # ends first at equal times, so a frame ending at t never overlaps one starting at t
+# At equal times, ends are handled before new attempts so that the order is fixed.
+_END = 0
 _TRY = 1
 
 

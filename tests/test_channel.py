@@ -269,14 +269,15 @@ def test_unicast_retries_raise_delivery_ratio() -> None:
 
 def test_far_receiver_dropped_for_distance_without_drawing() -> None:
     m = quiet()
-    med = RadioMedium(m, np.random.default_rng(0))
+    rng = np.random.default_rng(0)
+    med = RadioMedium(m, rng)
     med.set_positions({0: [0.0, 0.0], 1: [5000.0, 0.0]})
     med.offer(TxFrame(1, 0, None, 10), 0.0)
-    state = med._rng.bit_generator.state  # noqa: SLF001 - the draw count is the behaviour under test
+    state = rng.bit_generator.state
     (o,) = med.advance(1.0)
     assert (o.delivered, o.reason) == (False, "distance")
     assert hand_rx_dbm(5000.0) < m.derived_sensitivity_dbm
-    assert med._rng.bit_generator.state == state  # noqa: SLF001
+    assert rng.bit_generator.state == state
 
 
 # --------------------------------------------------------------------------- #

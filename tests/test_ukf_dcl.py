@@ -1,0 +1,168 @@
+"""UKF-DCL in process: step by step against UKF-CCL, side by side (FilterPy-test style)."""
+
+import numpy as np
+import pytest
+
+from netsim.sim import Simulation
+from swarmloc import scenario as S
+from swarmloc import wire
+from swarmloc.estimators import CentralizedUKF, UkfDclNode
+from swarmloc.messages import DclCommit, DclToken
+from swarmloc.results import compute_references, metrics
+from swarmloc.runner import InProcessRunner, make_nodes
+
+TOL = 1e-9
+
+
+def lockstep_compare(sc, check_connected=False):
+    """Run UKF-DCL nodes and UKF-CCL side by side; after every tick every node's mean and
+    whole covariance row must equal the centralized ones."""
+    sim = Simulation(sc)
+    nodes = make_nodes("ukf-dcl", sc)
+    x0 = {a: np.array(sc.agent(a).start, float) for a in sc.agent_ids}
+    ccl = CentralizedUKF(x0, np.eye(2) * sc.estimation.initial_std**2, spread=sc.estimation.spread)
+    worst = {"mean": 0.0, "row": 0.0}
+    chains = []
+
+    def on_tick(k, frames):
+        if check_connected:
+            assert connected(sim), f"precondition: swarm connected at tick {k}"
+        ccl.step(frames)
+        for a, node in nodes.items():
+            worst["mean"] = max(worst["mean"], np.abs(node.x - ccl.x[ccl.block(a)]).max())
+            for b in sc.agent_ids:
+                block = node.row.get(b, np.zeros((2, 2)))
+                worst["row"] = max(worst["row"], np.abs(block - ccl.P[ccl.block(a), ccl.block(b)]).max())
+        chains.append(sum(len(f.ranges) for f in frames.values()))
+        assert worst["mean"] < TOL and worst["row"] < TOL, f"tick {k}: diverged {worst}"
+
+    InProcessRunner(sim, nodes).run(on_tick=on_tick)
+    return nodes, worst, chains
+
+
+def connected(sim):
+    ids = sim.ids
+    seen, todo = {ids[0]}, [ids[0]]
+    while todo:
+        a = todo.pop()
+        for b in ids:
+            if b not in seen and sim.link_state(a, b)[0]:
+                seen.add(b)
+                todo.append(b)
+    return len(seen) == len(ids)
+
+
+def test_wang2019_equals_centralized_every_tick():
+    nodes, worst, chains = lockstep_compare(S.load("wang2019"))
+    assert sum(chains) > 300  # about 400 measurements at p = 0.5 over 800 steps
+    assert all(n.stats["measurements_dropped"] == 0 for n in nodes.values())
+    assert sum(n.stats["measurements_used"] for n in nodes.values()) == sum(chains)
+
+
+def test_seven_agents_random_motion_limited_radio_equals_centralized():
+    nodes, worst, chains = lockstep_compare(S.load("random7"), check_connected=True)
+    assert max(chains) >= 2, "scenario must exercise several chains in one tick"
+    assert sum(n.stats["measurements_used"] for n in nodes.values()) == sum(chains)
+
+
+def run(sc):
+    sim = Simulation(sc)
+    nodes = make_nodes("ukf-dcl", sc)
+    record = InProcessRunner(sim, nodes).run()
+    compute_references(sc, record)
+    return metrics(record, ["il", "ukf-dcl", "ukf-ccl"]), nodes
+
+
+def test_cooperation_beats_dead_reckoning_for_every_platform():
+    m, _ = run(S.load("wang2019"))
+    il, dcl = m["estimators"]["il"]["agents"], m["estimators"]["ukf-dcl"]["agents"]
+    for a in il:
+        assert dcl[a]["mean_error_m"] < il[a]["mean_error_m"], f"A{a}"
+
+
+def test_error_falls_as_measurement_probability_rises():
+    """Fig. 7 trend: averaged over seeds, the mean error decreases with p."""
+    ps = [0.05, 0.1, 0.2, 0.5]
+    sc = S.load("wang2019").with_overrides(**{"clock.duration": 200.0})
+    errs = []
+    for p in ps:
+        e = [run(sc.with_overrides(**{"sensors.range.probability": p, "seed": s}))[0]["estimators"]["ukf-dcl"]["mean_error_m"]
+             for s in (1, 2, 3)]
+        errs.append(np.mean(e))
+    assert all(a > b for a, b in zip(errs, errs[1:])), dict(zip(ps, errs))
+
+
+def test_partitioned_swarm_cooperates_inside_each_part():
+    """Radio range shorter than the swarm: chains stay inside a connected part, nothing hangs,
+    covariances stay symmetric positive definite."""
+    sc = S.load("random7").with_overrides(**{"radio.range": 60.0, "clock.duration": 60.0})
+    m, nodes = run(sc)
+    used = sum(n.stats["measurements_used"] for n in nodes.values())
+    dropped = sum(n.stats["measurements_dropped"] for n in nodes.values())
+    assert used > 0 and dropped > 0  # some targets out of radio reach, others cooperating
+    for n in nodes.values():
+        P = n.estimate().cov
+        assert np.allclose(P, P.T) and np.all(np.linalg.eigvalsh(P) > 0)
+    assert m["estimators"]["ukf-dcl"]["mean_error_m"] < m["estimators"]["il"]["mean_error_m"]
+
+
+class Capture:
+    """Drive 3 nodes by hand, keeping every frame, to replay old ones later."""
+
+    def __init__(self):
+        self.sc = S.load("wang2019").with_overrides(**{"sensors.range.probability": 1.0})
+        self.sim = Simulation(self.sc)
+        self.nodes = make_nodes("ukf-dcl", self.sc)
+        self.frames = []
+        self.runner = InProcessRunner(self.sim, self.nodes)
+
+    def ticks(self, n):
+        original = self.runner._transmit
+
+        def spy(queue, src, send, t, order):
+            self.frames.append((src, send))
+            return original(queue, src, send, t, order)
+
+        self.runner._transmit = spy
+        self.sim.steps = n - 1
+        self.runner.run()
+
+
+def test_stale_and_replayed_frames_never_change_state():
+    cap = Capture()
+    cap.ticks(6)
+    snapshot = {a: (n.x.copy(), {j: b.copy() for j, b in n.row.items()}) for a, n in cap.nodes.items()}
+    replayed = 0
+    for src, send in cap.frames:
+        if isinstance(send.msg, (DclToken, DclCommit)):
+            dst = send.dst
+            before = cap.nodes[dst].drops["stale"]
+            cap.nodes[dst].receive(src, wire.decode(wire.encode(send.msg, src, 1, dst)).body)
+            assert cap.nodes[dst].drops["stale"] == before + 1
+            replayed += 1
+    assert replayed > 10
+    for a, n in cap.nodes.items():
+        x, row = snapshot[a]
+        assert np.array_equal(n.x, x)
+        assert all(np.array_equal(row[j], n.row[j]) for j in row)
+
+
+def test_malformed_but_decodable_chain_frames_are_dropped():
+    cap = Capture()
+    cap.ticks(3)
+    node = cap.nodes[2]
+    x = node.x.copy()
+    key = [1, 2, 0]
+    bad_shapes = DclToken(node.k, node.epoch, key, np.eye(3), np.ones((4, 1)), np.eye(1), np.zeros(1), [1], {}, {}, {}, [])
+    assert node.receive(1, bad_shapes) == []
+    singular = DclToken(node.k, node.epoch, key, np.zeros((4, 4)), np.ones((4, 1)), np.eye(1), np.zeros(1), [1], {}, {}, {}, [])
+    assert node.receive(1, singular) == []
+    not_for_me = DclCommit(node.k, node.epoch, key, np.eye(1), np.zeros(1), {}, {9: np.zeros((2, 1))}, {}, [])
+    assert node.receive(1, not_for_me) == []
+    assert sum(node.drops.values()) >= 3
+    assert np.array_equal(node.x, x)
+
+
+def test_node_needs_matching_model_dimensions():
+    with pytest.raises(ValueError, match="state_dim"):
+        UkfDclNode(1, np.zeros(3), np.eye(3))
