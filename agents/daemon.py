@@ -23,8 +23,8 @@ from dataclasses import dataclass
 import zenoh
 
 from swarmloc import wire
-from swarmloc.messages import Clock, Done, EstimateMsg, Reply, Sensors
-from swarmloc.node import Node
+from swarmloc.messages import Clock, Done, EstimateMsg, LinkNack, Reply, Sensors
+from swarmloc.node import Node, Outbox
 
 log = logging.getLogger("swarmloc.agent")
 
@@ -46,7 +46,7 @@ class AgentDaemon:
         self.node, self.cfg = node, cfg
         self.keys = wire.Keys(cfg.swarm)
         self.inbox: queue.SimpleQueue = queue.SimpleQueue()
-        self.seq = 0
+        self.outbox = Outbox(node.id)
         self.sent = 0  # radio frames published
         self.consumed = 0  # highest netsim delivery number handled
         self.rejected: Counter[str] = Counter()
@@ -141,16 +141,23 @@ class AgentDaemon:
                 self._reject("radio", str(exc))
                 sends = []
             else:
-                sends = [] if env.src == self.node.id else self.node.receive(env.src, env.body)
+                sends = self._radio(env)
         self.handled += 1
         for s in sends:
             self._send(s)
         self._publish_estimate()
         self._pub_done.put(wire.encode(Done(self.node.k, self.consumed, self.sent), self.node.id, self.handled))
 
+    def _radio(self, env: wire.Envelope) -> list:
+        if isinstance(env.body, LinkNack):
+            failed = self.outbox.failed(env.body)
+            return self.node.link_failed(failed.dst, failed.msg) if failed else []
+        if env.src == self.node.id:
+            return []
+        return self.node.receive(env.src, env.body)
+
     def _send(self, send) -> None:
-        self.seq += 1
-        data = wire.encode(send.msg, self.node.id, self.seq, send.dst)
+        data = self.outbox.encode(send)
         if self.cfg.direct:
             key = self.keys.radio_rx(BROADCAST if send.dst is None else send.dst)
             pub = self._pub_tx.get(key)

@@ -22,7 +22,7 @@ import zenoh
 
 from netsim.sim import Simulation
 from swarmloc import wire
-from swarmloc.messages import Clock, Control, Done, EstimateMsg, LinkMsg, Links, Reply, Truth
+from swarmloc.messages import Clock, Control, Done, EstimateMsg, LinkMsg, LinkNack, Links, Reply, Truth
 from swarmloc.node import Estimate
 from swarmloc.results import RunRecord, compute_references, write_run
 from swarmloc.scenario import Scenario
@@ -145,10 +145,17 @@ class NetsimServer:
             self.invalid_tx += 1
             log.warning("agent %s sent an invalid frame: %s", src, exc)
             return
-        for r, _t in self.sim.route(src, env.dst, len(payload), self.sim.t):
-            self.delivered[r] += 1
-            self.pub_rx[r].put(payload, attachment=wire.encode_delivery(self.delivered[r]))
+        receivers = self.sim.route(src, env.dst, len(payload), self.sim.t)
+        for r, _t in receivers:
+            self._deliver(r, payload)
+        if env.dst is not None and not receivers:
+            self.seq += 1
+            self._deliver(src, wire.encode(LinkNack(env.seq, env.dst, "unreachable"), NETSIM_ID, self.seq))
         self.hop_latency.append(time.perf_counter() - stamp)
+
+    def _deliver(self, r: int, payload: bytes) -> None:
+        self.delivered[r] += 1
+        self.pub_rx[r].put(payload, attachment=wire.encode_delivery(self.delivered[r]))
 
     def _control(self, query) -> None:
         def reply(ok: bool, error: str = "", data: dict | None = None):
@@ -228,10 +235,8 @@ class NetsimServer:
             self.close()
 
     def _tick(self) -> None:
-        for op, link in self.pending_faults:
-            self.sim.apply(op, link, source="live")
-        self.pending_faults.clear()
-        k, t, frames = self.sim.tick()
+        k, t, frames = self.sim.tick(self.pending_faults)
+        self.pending_faults = []
         self._put(self.pub_clock, Clock(k, t, "lockstep", self.sc.clock.dt))
         truth = self.sim.truth()
         for a in self.ids:

@@ -33,12 +33,15 @@ class Simulation:
 
     # ---------------------------------------------------------------- clock
 
-    def tick(self):
+    def tick(self, live_faults=()):
+        """Advance one tick; scenario and live faults take effect for this tick's frames."""
         frames = self.world.step()
         self.k, self.t = self.world.k, self.world.t
         while self.timeline and self.timeline[0].at <= self.t:
             f = self.timeline.pop(0)
             self.apply(f.action, f.link, source="scenario")
+        for action, link in live_faults:
+            self.apply(action, link, source="live")
         return self.k, self.t, frames
 
     def truth(self) -> dict[int, np.ndarray]:

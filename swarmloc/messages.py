@@ -150,6 +150,17 @@ class DclCommit:
     pending: Annotated[list, ListOf(ChainKey)]
 
 
+@message("radio.nack")
+class LinkNack:
+    """The radio could not deliver our unicast frame `seq` to `dst` (a MAC's missing ACK).
+
+    netsim sends it on radio/rx/<sender>; a real radio driver would report the same."""
+
+    seq: Annotated[int, Int(0)]
+    dst: Id
+    reason: Annotated[str, Str(32)]
+
+
 # --------------------------------------------------------------------------- netsim control & monitoring
 
 

@@ -8,13 +8,14 @@ reads a clock, so the same object runs in the in-process runner and in the agent
 from __future__ import annotations
 
 import logging
-from collections import Counter
+from collections import Counter, OrderedDict
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from swarmloc.messages import Sensors
+from swarmloc import wire
+from swarmloc.messages import LinkNack, Sensors
 from swarmloc.models import MOTION_MODELS, MotionModel, Odometry
 
 log = logging.getLogger(__name__)
@@ -63,6 +64,10 @@ class Node:
         """Handle a radio message from `src`. Never raises on bad content: it counts a drop."""
         return []
 
+    def link_failed(self, dst: int, msg: Any) -> list[Send]:
+        """The radio reports that unicast `msg` never reached `dst`."""
+        return []
+
     def estimate(self) -> Estimate:
         return Estimate(self.k, self.x.copy(), self.P.copy())
 
@@ -70,3 +75,25 @@ class Node:
         self.drops[reason] += 1
         log.debug("node %s drops frame: %s %s", self.id, reason, detail)
         return []
+
+
+class Outbox:
+    """Numbers a node's frames and remembers recent unicasts, so a driver can hand a radio
+    NACK back to the node as the message it refers to. Shared by every driver."""
+
+    def __init__(self, node_id: int, keep: int = 1024):
+        self.node_id, self.keep = node_id, keep
+        self.seq = 0
+        self.unicast: OrderedDict[int, Send] = OrderedDict()
+
+    def encode(self, send: Send) -> bytes:
+        self.seq += 1
+        if send.dst is not None:
+            self.unicast[self.seq] = send
+            if len(self.unicast) > self.keep:
+                self.unicast.popitem(last=False)
+        return wire.encode(send.msg, self.node_id, self.seq, send.dst)
+
+    def failed(self, nack: LinkNack) -> Send | None:
+        send = self.unicast.pop(nack.seq, None)
+        return send if send is not None and send.dst == nack.dst else None

@@ -14,8 +14,8 @@ from typing import Callable, Iterable, Protocol
 import numpy as np
 
 from swarmloc import wire
-from swarmloc.messages import Sensors
-from swarmloc.node import Node
+from swarmloc.messages import LinkNack, Sensors
+from swarmloc.node import Node, Outbox
 from swarmloc.results import RunRecord
 
 log = logging.getLogger(__name__)
@@ -39,7 +39,7 @@ class InProcessRunner:
     def __init__(self, env: Environment, nodes: dict[int, Node], max_events_per_tick: int = 200_000):
         self.env, self.nodes = env, nodes
         self.max_events = max_events_per_tick
-        self.seq = {a: 0 for a in nodes}
+        self.outbox = {a: Outbox(a) for a in nodes}
         self.frames = 0
 
     def run(self, record: RunRecord | None = None, on_tick: Callable[[int, dict[int, Sensors]], None] | None = None) -> RunRecord:
@@ -55,7 +55,12 @@ class InProcessRunner:
             while queue:
                 t_arr, _, dst, data = heapq.heappop(queue)
                 env = wire.decode(data)
-                for send in self.nodes[dst].receive(env.src, env.body):
+                if isinstance(env.body, LinkNack):
+                    failed = self.outbox[dst].failed(env.body)
+                    sends = self.nodes[dst].link_failed(failed.dst, failed.msg) if failed else []
+                else:
+                    sends = self.nodes[dst].receive(env.src, env.body)
+                for send in sends:
                     order = self._transmit(queue, dst, send, t_arr, order)
                 events += 1
                 if events > self.max_events:
@@ -68,13 +73,18 @@ class InProcessRunner:
         return record
 
     def _transmit(self, queue, src, send, t, order) -> int:
-        self.seq[src] += 1
-        data = wire.encode(send.msg, src, self.seq[src], send.dst)
+        outbox = self.outbox[src]
+        data = outbox.encode(send)
         self.frames += 1
-        for receiver, t_arr in self.env.route(src, send.dst, len(data), t):
+        receivers = self.env.route(src, send.dst, len(data), t)
+        for receiver, t_arr in receivers:
             if receiver in self.nodes:
                 heapq.heappush(queue, (t_arr, order, receiver, data))
                 order += 1
+        if send.dst is not None and not receivers:
+            nack = wire.encode(LinkNack(outbox.seq, send.dst, "unreachable"), 0, outbox.seq)
+            heapq.heappush(queue, (t, order, src, nack))
+            order += 1
         return order
 
 

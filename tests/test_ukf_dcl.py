@@ -155,7 +155,8 @@ def test_malformed_but_decodable_chain_frames_are_dropped():
     key = [1, 2, 0]
     bad_shapes = DclToken(node.k, node.epoch, key, np.eye(3), np.ones((4, 1)), np.eye(1), np.zeros(1), [1], {}, {}, {}, [])
     assert node.receive(1, bad_shapes) == []
-    singular = DclToken(node.k, node.epoch, key, np.zeros((4, 4)), np.ones((4, 1)), np.eye(1), np.zeros(1), [1], {}, {}, {}, [])
+    singular = DclToken(node.k, node.epoch, key, np.zeros((4, 4)), np.ones((4, 1)), np.eye(1), np.zeros(1), [1], {},
+                         {1: np.zeros((2, 1))}, {}, [])
     assert node.receive(1, singular) == []
     not_for_me = DclCommit(node.k, node.epoch, key, np.eye(1), np.zeros(1), {}, {9: np.zeros((2, 1))}, {}, [])
     assert node.receive(1, not_for_me) == []
@@ -166,3 +167,38 @@ def test_malformed_but_decodable_chain_frames_are_dropped():
 def test_node_needs_matching_model_dimensions():
     with pytest.raises(ValueError, match="state_dim"):
         UkfDclNode(1, np.zeros(3), np.eye(3))
+
+
+def ccl_without(sc, sensors, skip):
+    """UKF-CCL over a recorded sensor stream, leaving out the ranges skip(k, m, n) names."""
+    from swarmloc.messages import Sensors
+
+    x0 = {a: np.array(sc.agent(a).start, float) for a in sc.agent_ids}
+    ccl = CentralizedUKF(x0, np.eye(2) * sc.estimation.initial_std**2, spread=sc.estimation.spread)
+    means = []
+    for frames in sensors:
+        kept = {a: Sensors(f.k, f.t, f.odometry, [r for r in f.ranges if not skip(f.k, a, r.target)]) for a, f in frames.items()}
+        ccl.step(kept)
+        means.append(np.stack([ccl.x[ccl.block(a)] for a in sc.agent_ids]))
+    return np.stack(means)
+
+
+def test_cut_link_chains_route_around_it():
+    """With link 1-2 cut, chains reach 1 and 2 through the others; only ranges between 1 and 2
+    (whose chain must start on that link) are lost, from the cut tick to the restore tick."""
+    sc = S.load("wang2019").with_overrides(faults=[{"at": 100.0, "action": "cut", "link": [1, 2]},
+                                                   {"at": 250.0, "action": "restore", "link": [1, 2]}])
+    sim = Simulation(sc)
+    nodes = make_nodes("ukf-dcl", sc)
+    record = InProcessRunner(sim, nodes).run()
+    kc, kr = (int(round(f.at / sc.clock.dt)) for f in sc.faults)
+    during = lambda k, m, n: {m, n} == {1, 2} and kc <= k <= kr
+    lost = sum(1 for fr in record.sensors for a, f in fr.items() for r in f.ranges if during(f.k, a, r.target))
+    assert lost > 0
+    expected = ccl_without(sc, record.sensors, during)
+    got = record.trace("ukf-dcl").mean
+    assert np.abs(got - expected).max() < TOL
+    # No frame crossed the cut link while it was cut; frames crossed it before and after.
+    crossed = [(k, s, r) for k, s, r, _, why in sim.radio_log if {s, r} == {1, 2} and why == ""]
+    assert not [c for c in crossed if kc <= c[0] < kr]
+    assert any(c[0] < kc for c in crossed) and any(c[0] >= kr for c in crossed)

@@ -212,16 +212,17 @@ class UkfDclNode(Node):
             return self.drop("preempted", str(key))
         if self.id in msg.order:
             return self._forward(msg)  # backtracking through us
-        m, n, _ = key
-        zero = np.zeros((d, d))
-        P_i_mn = np.hstack([self.row.get(m, zero), self.row.get(n, zero)])
-        A_i = kalman.solve_lower(msg.L, P_i_mn.T).T
-        K_i = kalman.gain(A_i @ msg.Y, msg.Pz)
+        gains = dict(msg.gains)
+        if gains:  # an empty chain (measurement abandoned) only gathers keys and sequences
+            m, n, _ = key
+            zero = np.zeros((d, d))
+            P_i_mn = np.hstack([self.row.get(m, zero), self.row.get(n, zero)])
+            A_i = kalman.solve_lower(msg.L, P_i_mn.T).T
+            gains[self.id] = kalman.gain(A_i @ msg.Y, msg.Pz)
         pending = {tuple(k) for k in msg.pending} | set(self.pending)
         token = DclToken(
             msg.k, msg.epoch, msg.key, msg.L, msg.Y, msg.Pz, msg.nu, msg.order + [self.id],
-            {**msg.parent, self.id: src}, {**msg.gains, self.id: K_i}, msg.xz,
-            [list(k) for k in sorted(pending)],
+            {**msg.parent, self.id: src}, gains, msg.xz, [list(k) for k in sorted(pending)],
         )
         return self._forward(token)
 
@@ -240,29 +241,48 @@ class UkfDclNode(Node):
                            token.gains, token.xz, token.pending)
         return self._on_commit(self.id, commit)
 
+    def link_failed(self, dst: int, msg) -> list[Send]:
+        """A unicast did not arrive: forget that neighbour for this tick and route around it."""
+        self.neighbours.pop(dst, None)
+        if not isinstance(msg, (DclStart, DclToken)) or msg.k != self.k or msg.epoch != self.epoch:
+            return self.drop("undeliverable", type(msg).__name__)
+        if isinstance(msg, DclStart):
+            # The measured platform is out of reach: the measurement is lost, but the chain
+            # still has to run (empty) so the keys it preempted get their turn.
+            d, dz = self.model.state_dim, self.meas.dim
+            token = DclToken(self.k, self.epoch, msg.key, np.eye(2 * d), np.zeros((2 * d, dz)), np.eye(dz),
+                             np.zeros(dz), [self.id], {}, {}, {}, [list(k) for k in sorted(self.pending)])
+            return self._forward(token)
+        if msg.parent.get(self.id) == dst:
+            return self.drop("chain-broken", f"parent {dst} unreachable")
+        return self._forward(msg)
+
     def _on_commit(self, src: int, msg: DclCommit) -> list[Send]:
         key = tuple(msg.key)
         d, dz = self.model.state_dim, self.meas.dim
-        if self.id not in msg.gains or msg.parent.get(self.id, key[0]) != src:
+        if msg.parent.get(self.id, key[0]) != src or (self.id != key[0] and self.id not in msg.parent):
             return self.drop("misrouted", f"commit {key}")
+        if msg.gains and self.id not in msg.gains:
+            return self.drop("misrouted", f"commit {key} without our gain")
         if msg.Pz.shape != (dz, dz) or msg.nu.shape != (dz,) or any(g.shape != (d, dz) for g in msg.gains.values()):
             return self.drop("shape", "commit")
-        K_i = msg.gains[self.id]
-        new_row = dict(self.row)
-        for j, K_j in msg.gains.items():
-            new_row[j] = new_row.get(j, np.zeros((d, d))) - kalman.covariance_decrement(K_i, msg.Pz, K_j)
-        for j, xz_j in msg.xz.items():
-            if j not in msg.gains:
-                new_row[j] = new_row.get(j, np.zeros((d, d))) - K_i @ xz_j.T
-        if not all(np.isfinite(b).all() for b in new_row.values()):
-            return self.drop("invalid", "non-finite update")
-        self.x = self.x + K_i @ msg.nu
-        self.row = new_row
+        if msg.gains:
+            K_i = msg.gains[self.id]
+            new_row = dict(self.row)
+            for j, K_j in msg.gains.items():
+                new_row[j] = new_row.get(j, np.zeros((d, d))) - kalman.covariance_decrement(K_i, msg.Pz, K_j)
+            for j, xz_j in msg.xz.items():
+                if j not in msg.gains:
+                    new_row[j] = new_row.get(j, np.zeros((d, d))) - K_i @ xz_j.T
+            if not all(np.isfinite(b).all() for b in new_row.values()):
+                return self.drop("invalid", "non-finite update")
+            self.x = self.x + K_i @ msg.nu
+            self.row = new_row
         self.epoch += 1
         self.stats["chains_committed"] += 1
         if key in self.pending:
             del self.pending[key]
-            self.stats["measurements_used"] += 1
+            self.stats["measurements_used" if msg.gains else "measurements_dropped"] += 1
         self.known_pending = {tuple(k) for k in msg.pending} - {key}
 
         out = [Send(msg, c) for c, p in sorted(msg.parent.items()) if p == self.id]
