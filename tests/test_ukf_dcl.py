@@ -11,6 +11,8 @@ from swarmloc.messages import DclCommit, DclToken
 from swarmloc.results import compute_references, metrics
 from swarmloc.runner import InProcessRunner, make_nodes
 
+from helpers import ccl_without
+
 TOL = 1e-9
 
 
@@ -167,20 +169,6 @@ def test_malformed_but_decodable_chain_frames_are_dropped():
 def test_node_needs_matching_model_dimensions():
     with pytest.raises(ValueError, match="state_dim"):
         UkfDclNode(1, np.zeros(3), np.eye(3))
-
-
-def ccl_without(sc, sensors, skip):
-    """UKF-CCL over a recorded sensor stream, leaving out the ranges skip(k, m, n) names."""
-    from swarmloc.messages import Sensors
-
-    x0 = {a: np.array(sc.agent(a).start, float) for a in sc.agent_ids}
-    ccl = CentralizedUKF(x0, np.eye(2) * sc.estimation.initial_std**2, spread=sc.estimation.spread)
-    means = []
-    for frames in sensors:
-        kept = {a: Sensors(f.k, f.t, f.odometry, [r for r in f.ranges if not skip(f.k, a, r.target)]) for a, f in frames.items()}
-        ccl.step(kept)
-        means.append(np.stack([ccl.x[ccl.block(a)] for a in sc.agent_ids]))
-    return np.stack(means)
 
 
 CUTS = {

@@ -1,0 +1,95 @@
+import os
+import socket
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import pytest
+
+# Agent processes pin BLAS to one thread themselves; the test process should too.
+for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(var, "1")
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Cli:
+    """The real `swarmloc` command in a subprocess, on its own port and swarm name."""
+
+    def __init__(self, tmp_path: Path):
+        self.port = free_port()
+        self.swarm = "t" + uuid.uuid4().hex[:8]
+        self.endpoint = f"tcp/127.0.0.1:{self.port}"
+        self.tmp = tmp_path
+        self.procs: list[subprocess.Popen] = []
+
+    def cmd(self, *args) -> list[str]:
+        return [sys.executable, "-m", "agents", *args]
+
+    def run(self, *args, timeout=120, check=False) -> subprocess.CompletedProcess:
+        p = subprocess.run(self.cmd(*args), capture_output=True, text=True, timeout=timeout, cwd=self.tmp)
+        if check and p.returncode != 0:
+            raise AssertionError(f"swarmloc {' '.join(args)} failed ({p.returncode}):\n{p.stdout}\n{p.stderr}")
+        return p
+
+    def start_run(self, scenario: str, out: Path, *extra) -> subprocess.Popen:
+        p = subprocess.Popen(self.cmd("run", scenario, "--out", str(out), "--port", str(self.port), "--swarm", self.swarm,
+                                      "--no-plots", *extra),
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=self.tmp)
+        self.procs.append(p)
+        return p
+
+    def control(self, *args, timeout=30) -> subprocess.CompletedProcess:
+        return self.run(*args, "--swarm", self.swarm, "--connect", self.endpoint, timeout=timeout)
+
+    def wait_tick(self, k: int, proc: subprocess.Popen, timeout=60.0) -> dict:
+        import json
+
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            assert proc.poll() is None, f"run ended early: {proc.communicate()}"
+            p = self.control("status", "--json")
+            if p.returncode == 0:
+                s = json.loads(p.stdout)
+                if s["k"] >= k:
+                    return s
+            time.sleep(0.2)
+        raise AssertionError(f"tick {k} not reached in {timeout} s")
+
+    def cleanup(self):
+        for p in self.procs:
+            if p.poll() is None:
+                p.terminate()
+                try:
+                    p.wait(10)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+
+
+@pytest.fixture
+def cli(tmp_path):
+    c = Cli(tmp_path)
+    yield c
+    c.cleanup()
+
+
+def swarm_pids(swarm: str) -> list[int]:
+    """Processes whose command line names this swarm (netsim and agents of one run)."""
+    out = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                cmdline = (d / "cmdline").read_bytes().split(b"\0")
+            except OSError:
+                continue
+            if swarm.encode() in cmdline and any(b"agents" in c or b"netsim" in c for c in cmdline):
+                out.append(int(d.name))
+    return out

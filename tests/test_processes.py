@@ -1,0 +1,188 @@
+"""Across processes: netsim and agent daemons over real Zenoh sessions on 127.0.0.1."""
+
+import json
+import os
+import signal
+import subprocess
+import threading
+import time
+
+import msgpack
+import numpy as np
+import pytest
+import zenoh
+
+from conftest import swarm_pids
+from helpers import ccl_without, in_process
+from swarmloc import scenario as S
+from swarmloc import wire
+from swarmloc.messages import Beacon, DclToken, Reply
+
+pytestmark = pytest.mark.slow
+TOL = 1e-9
+
+
+def load_npz(path):
+    with np.load(path, allow_pickle=False) as f:
+        return {k: f[k] for k in f.files}
+
+
+def test_lockstep_over_zenoh_equals_in_process(cli, tmp_path):
+    out = tmp_path / "run"
+    p = cli.run("run", "wang2019", "--out", str(out), "--port", str(cli.port), "--swarm", cli.swarm, "--no-plots",
+                check=True, timeout=300)
+    assert "ukf-dcl" in p.stdout and "A4" in p.stdout
+    zen = load_npz(out / "estimates" / "ukf-dcl.npz")
+    record, _, _ = in_process(S.load("wang2019"))
+    ref = record.trace("ukf-dcl")
+    assert zen["mean"].shape == ref.mean.shape == (801, 4, 2)
+    assert np.abs(zen["mean"] - ref.mean).max() < TOL
+    assert np.abs(zen["cov"] - ref.cov).max() < TOL
+    ccl = load_npz(out / "estimates" / "ukf-ccl.npz")
+    assert np.abs(zen["mean"] - ccl["mean"]).max() < TOL
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["radio"]["dropped"] == {} and m["unresponsive_agents"] == []
+
+
+def long_scenario(tmp_path, duration=1000.0):
+    sc = S.load("wang2019").with_overrides(**{"clock.duration": duration})
+    path = tmp_path / "long.yaml"
+    path.write_text(sc.to_yaml())
+    return sc, path
+
+
+def link(status, a, b):
+    return next(l for l in status["links"] if {l["a"], l["b"]} == {a, b})
+
+
+def test_inject_cut_and_restore_live(cli, tmp_path):
+    sc, path = long_scenario(tmp_path)
+    out = tmp_path / "run"
+    run = cli.start_run(str(path), out)
+    cli.wait_tick(100, run)
+    p = cli.control("inject", "cut", "1", "2")
+    assert p.returncode == 0, p.stderr
+    s = cli.wait_tick(int(p.stdout.split("tick")[-1]) + 5, run)
+    assert link(s, 1, 2)["up"] is False and link(s, 1, 2)["reason"] == "fault"
+    assert link(s, 1, 3)["up"] is True
+    p = cli.control("inject", "restore", "1", "2")
+    assert p.returncode == 0, p.stderr
+    s = cli.wait_tick(int(p.stdout.split("tick")[-1]) + 5, run)
+    assert link(s, 1, 2)["up"] is True
+    stdout, stderr = run.communicate(timeout=300)
+    assert run.returncode == 0, stderr
+
+    m = json.loads((out / "metrics.json").read_text())
+    (cut,), (restore,) = ([f for f in m["faults"] if f["action"] == a] for a in ("cut", "restore"))
+    kc, kr = cut["k"], restore["k"]
+    radio = load_npz(out / "radio.npz")
+    pair = ((radio["src"] == 1) & (radio["receiver"] == 2)) | ((radio["src"] == 2) & (radio["receiver"] == 1))
+    window = (radio["k"] >= kc) & (radio["k"] < kr)
+    assert not (pair & window & radio["delivered"]).any()
+    assert (pair & window & (radio["reason"] == "fault")).any()
+    assert (pair & (radio["k"] >= kr) & radio["delivered"]).any()
+    # Chains routed around the cut: UKF-DCL equals UKF-CCL minus the ranges between 1 and 2.
+    from swarmloc.results import frames_from_arrays
+
+    sensors = frames_from_arrays(load_npz(out / "sensors.npz"))
+    expected = ccl_without(sc, sensors, lambda k, a, b: {a, b} == {1, 2} and kc <= k <= kr)
+    assert np.abs(load_npz(out / "estimates" / "ukf-dcl.npz")["mean"] - expected).max() < TOL
+
+
+def garbage_frames(rng):
+    """Random bytes, wrong types, NaN/inf arrays, wrong shapes, oversized frames."""
+    arr = wire.Array(2).encode
+    ok = wire.encode(DclToken(5, 0, [1, 2, 0], np.eye(4), np.ones((4, 1)), np.eye(1), np.zeros(1), [1], {2: 1},
+                              {1: np.zeros((2, 1))}, {}, []), 1, 7, 2)
+    env = msgpack.unpackb(ok, strict_map_key=False)
+
+    def with_body(**changes):
+        e = dict(env, body={**env["body"], **changes})
+        return msgpack.packb(e, use_bin_type=True)
+
+    nan = np.eye(4)
+    nan[1, 1] = np.nan
+    yield rng.bytes(64)
+    yield b""
+    yield msgpack.packb({"v": 1, "type": "beacon", "src": "x", "seq": 1, "body": {}})
+    yield with_body(k="five")
+    yield with_body(L=arr(nan))
+    yield with_body(L=arr(np.full((4, 4), np.inf)))
+    yield with_body(L=arr(np.eye(3)))  # decodes, wrong shape for this model: the node drops it
+    yield wire.encode(Beacon(5, np.zeros(3)), 3, 1)  # a 3D position in a 2D swarm
+    yield b"\x92" + rng.bytes(wire.MAX_FRAME_BYTES + 10)
+
+
+def test_bad_input_is_dropped_and_counted(cli, tmp_path):
+    out = tmp_path / "run"
+    run = cli.start_run("wang2019", out)
+    cli.wait_tick(20, run)
+    session = zenoh.open(zenoh.Config.from_json5(wire.zenoh_config("client", connect=[cli.endpoint])))
+    keys = wire.Keys(cli.swarm)
+    pub = session.declare_publisher(keys.radio_rx(2), congestion_control=zenoh.CongestionControl.BLOCK)
+    rng = np.random.default_rng(0)
+    sent = 0
+    try:
+        for _ in range(20):
+            for frame in garbage_frames(rng):
+                pub.put(frame)
+                sent += 1
+            time.sleep(0.02)
+        time.sleep(0.3)
+        replies = [r for r in session.get(keys.prefix + "/agent/2/stats", timeout=5.0) if r.ok is not None]
+        stats = wire.decode(replies[0].ok.payload.to_bytes(), expect=(Reply,)).body.data
+    finally:
+        session.close()
+    stdout, stderr = run.communicate(timeout=300)
+    assert run.returncode == 0, stderr
+    rejected = stats["rejected"].get("radio", 0)
+    node_drops = sum(stats["node_drops"].values())
+    assert rejected >= 20 * 7, stats  # every frame that cannot decode is counted
+    assert node_drops >= 20, stats  # decodable but unfit for this swarm: dropped by the node
+    assert "node-error" not in stats["rejected"]
+    zen = load_npz(out / "estimates" / "ukf-dcl.npz")
+    record, _, _ = in_process(S.load("wang2019"))
+    assert np.abs(zen["mean"] - record.trace("ukf-dcl").mean).max() < TOL
+
+
+def find_pid(swarm, agent_id):
+    for pid in swarm_pids(swarm):
+        try:
+            cmd = open(f"/proc/{pid}/cmdline", "rb").read().split(b"\0")
+        except OSError:
+            continue
+        if b"--id" in cmd and cmd[cmd.index(b"--id") + 1] == str(agent_id).encode():
+            return pid
+    raise AssertionError(f"agent {agent_id} not running")
+
+
+def wait_gone(swarm, timeout=15.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if not swarm_pids(swarm):
+            return
+        time.sleep(0.1)
+    raise AssertionError(f"processes left behind: {swarm_pids(swarm)}")
+
+
+def test_crashed_agent_is_reported_and_swarm_stopped(cli, tmp_path):
+    _, path = long_scenario(tmp_path)
+    run = cli.start_run(str(path), tmp_path / "run")
+    cli.wait_tick(30, run)
+    os.kill(find_pid(cli.swarm, 3), signal.SIGKILL)
+    stdout, stderr = run.communicate(timeout=60)
+    assert run.returncode == 1
+    assert "agent-3 crashed" in stderr and "-9" in stderr
+    wait_gone(cli.swarm)
+
+
+def test_ctrl_c_stops_every_process(cli, tmp_path):
+    _, path = long_scenario(tmp_path)
+    run = cli.start_run(str(path), tmp_path / "run")
+    cli.wait_tick(30, run)
+    assert len(swarm_pids(cli.swarm)) >= 5
+    run.send_signal(signal.SIGINT)
+    stdout, stderr = run.communicate(timeout=60)
+    assert run.returncode == 130
+    assert "interrupted" in stderr
+    wait_gone(cli.swarm)
