@@ -50,6 +50,7 @@ class AgentDaemon:
         self.sent = 0  # radio frames published
         self.consumed = 0  # highest netsim delivery number handled
         self.rejected: Counter[str] = Counter()
+        self.hop_latency: list[float] = []  # s from the sender's publish to our loop picking the frame up
         self.handled = 0
         self._last_published = None
         self._stop = threading.Event()
@@ -73,7 +74,8 @@ class AgentDaemon:
         self._pub_est = self.session.declare_publisher(self.keys.estimate(aid), **block)
         self._pub_done = self.session.declare_publisher(self.keys.done(aid), **block)
         self._block = block
-        self._stats_q = self.session.declare_queryable(self.keys.prefix + f"/agent/{aid}/stats", self._on_stats)
+        self._stats_key = self.keys.stats(aid)
+        self._stats_q = self.session.declare_queryable(self._stats_key, self._on_stats)
         # Declared last: once netsim sees the token, every subscription above is in place.
         self._token = self.session.liveliness().declare_token(self.keys.alive(aid))
 
@@ -89,12 +91,15 @@ class AgentDaemon:
         self.inbox.put(("stop", b"", None))
 
     def stats(self) -> dict:
-        return {"id": self.node.id, "algorithm": self.node.algorithm, "k": self.node.k, "handled": self.handled,
+        lat = sorted(self.hop_latency)
+        pct = lambda q: lat[min(len(lat) - 1, int(q * len(lat)))] * 1e6 if lat else None
+        return {"hop_us_median": pct(0.5), "hop_us_p99": pct(0.99), "hops": len(lat),"id": self.node.id, "algorithm": self.node.algorithm, "k": self.node.k, "handled": self.handled,
                 "sent": self.sent, "consumed": self.consumed, "rejected": dict(self.rejected),
                 "node_drops": dict(self.node.drops), **getattr(self.node, "stats", {})}
 
     def _on_stats(self, query) -> None:
-        query.reply(query.key_expr, wire.encode(Reply(True, "", self.stats()), self.node.id, 0))
+        # Reply on our own key, not the query's: a wildcard query must not consolidate agents away.
+        query.reply(self._stats_key, wire.encode(Reply(True, "", self.stats()), self.node.id, 0))
 
     # ---------------------------------------------------------------- loop
 
@@ -134,7 +139,10 @@ class AgentDaemon:
         else:
             delivery = wire.decode_delivery(attachment.to_bytes() if attachment is not None else None)
             if delivery is not None:
-                self.consumed = max(self.consumed, delivery)
+                n, sent = delivery
+                self.consumed = max(self.consumed, n)
+                if sent is not None and len(self.hop_latency) < 100_000:
+                    self.hop_latency.append(time.perf_counter() - sent)
             try:
                 env = wire.decode(data)
             except wire.WireError as exc:
@@ -165,7 +173,7 @@ class AgentDaemon:
                 pub = self._pub_tx[key] = self.session.declare_publisher(key, **self._block)
             pub.put(data)
         else:
-            self._pub_tx.put(data)
+            self._pub_tx.put(data, attachment=wire.encode_send_time(time.perf_counter()))
         self.sent += 1
 
     def _publish_estimate(self) -> None:

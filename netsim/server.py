@@ -76,7 +76,7 @@ class NetsimServer:
         put, k = self.q.put, self.keys
         block = dict(congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
         self._subs = [
-            self.session.declare_subscriber(f"{k.prefix}/radio/tx/*", lambda s: put(("tx", str(s.key_expr), s.payload.to_bytes(), time.perf_counter()))),
+            self.session.declare_subscriber(f"{k.prefix}/radio/tx/*", lambda s: put(("tx", str(s.key_expr), s.payload.to_bytes(), (time.perf_counter(), s.attachment)))),
             self.session.declare_subscriber(f"{k.prefix}/agent/*/done", lambda s: put(("done", str(s.key_expr), s.payload.to_bytes(), None))),
             self.session.declare_subscriber(f"{k.prefix}/agent/*/estimate", lambda s: put(("est", str(s.key_expr), s.payload.to_bytes(), None))),
             self.session.liveliness().declare_subscriber(f"{k.prefix}/agent/*/alive", lambda s: put(("alive", str(s.key_expr), s.kind, None)), history=True),
@@ -131,7 +131,9 @@ class NetsimServer:
         elif kind == "ctl":
             self._control(payload)
 
-    def _route(self, key: str, payload: bytes, stamp: float) -> None:
+    def _route(self, key: str, payload: bytes, stamp) -> None:
+        arrived, attachment = stamp
+        sent = wire.decode_send_time(attachment.to_bytes() if attachment is not None else None)
         try:
             src = wire.Keys.agent_of(key)
         except ValueError:
@@ -147,15 +149,15 @@ class NetsimServer:
             return
         receivers = self.sim.route(src, env.dst, len(payload), self.sim.t)
         for r, _t in receivers:
-            self._deliver(r, payload)
+            self._deliver(r, payload, sent)
         if env.dst is not None and not receivers:
             self.seq += 1
             self._deliver(src, wire.encode(LinkNack(env.seq, env.dst, "unreachable"), NETSIM_ID, self.seq))
-        self.hop_latency.append(time.perf_counter() - stamp)
+        self.hop_latency.append(time.perf_counter() - arrived)
 
-    def _deliver(self, r: int, payload: bytes) -> None:
+    def _deliver(self, r: int, payload: bytes, sent: float | None = None) -> None:
         self.delivered[r] += 1
-        self.pub_rx[r].put(payload, attachment=wire.encode_delivery(self.delivered[r]))
+        self.pub_rx[r].put(payload, attachment=wire.encode_delivery(self.delivered[r], sent))
 
     def _control(self, query) -> None:
         def reply(ok: bool, error: str = "", data: dict | None = None):
@@ -229,8 +231,9 @@ class NetsimServer:
             for _ in range(self.sim.steps + 1):
                 self._tick()
             wall = time.perf_counter() - t0
+            agent_stats = self.agent_stats()
             self._put(self.pub_clock, Clock(self.sim.k, self.sim.t, "stop", self.sc.clock.dt))
-            return self._finish(wall)
+            return self._finish(wall, agent_stats)
         finally:
             self.close()
 
@@ -256,7 +259,19 @@ class NetsimServer:
         d = self.done.get(a)
         return d is not None and d.k >= k and d.consumed == self.delivered[a] and d.sent == self.received[a]
 
-    def _finish(self, wall: float) -> dict:
+    def agent_stats(self, timeout: float = 2.0) -> dict:
+        """Each live agent's own counters (drops by reason, hop latency), via its stats queryable."""
+        out = {}
+        for r in self.session.get(self.keys.stats("*"), timeout=timeout):
+            if r.ok is None:
+                continue
+            try:
+                out[str(wire.Keys.agent_of(str(r.ok.key_expr)))] = wire.decode(r.ok.payload.to_bytes(), expect=(Reply,)).body.data
+            except (wire.WireError, ValueError) as exc:
+                log.warning("bad stats reply: %s", exc)
+        return out
+
+    def _finish(self, wall: float, agent_stats: dict) -> dict:
         # Estimates are published before each `done`, so at quiet they have all arrived.
         self._pump(lambda: False, 0.05)
         compute_references(self.sc, self.record)
@@ -269,6 +284,7 @@ class NetsimServer:
                       "netsim_hop_us_median": float(np.median(lat)) if lat.size else None,
                       "netsim_hop_us_p99": float(np.percentile(lat, 99)) if lat.size else None},
             "faults": self.sim.fault_log,
+            "agent_stats": agent_stats,
             "unresponsive_agents": sorted(self.unresponsive),
         }
         algorithms = [a for a in ("il", "ukf-dcl", "ukf-ccl") if a in self.sc.estimators or a == "ukf-dcl"]

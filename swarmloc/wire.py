@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import struct
 import typing
 from dataclasses import dataclass
 from typing import Annotated, Any, ClassVar
@@ -319,6 +320,9 @@ class Keys:
     def done(self, aid: int | str) -> str:
         return f"{self.prefix}/agent/{aid}/done"
 
+    def stats(self, aid: int | str) -> str:
+        return f"{self.prefix}/agent/{aid}/stats"
+
     def alive(self, aid: int | str) -> str:
         return f"{self.prefix}/agent/{aid}/alive"
 
@@ -355,13 +359,25 @@ def zenoh_config(mode: str, listen: list[str] = (), connect: list[str] = ()) -> 
     return json.dumps(cfg)
 
 
-# Delivery attachments: netsim stamps every frame it hands an agent with a per-receiver
-# delivery number, so lockstep can tell "consumed what I delivered" from "consumed anything".
-def encode_delivery(n: int) -> bytes:
-    return int(n).to_bytes(8, "little")
+# Attachments (docs/wire.md, "Attachments"). An agent stamps each radio/tx frame with its send
+# time; netsim stamps each frame it hands an agent with a per-receiver delivery number (so
+# lockstep can tell "consumed what I delivered" from "consumed anything") and passes the send
+# time on, so the receiver can measure the hop. Times are CLOCK_MONOTONIC seconds
+# (time.perf_counter on Linux), comparable between processes of one machine only.
+def encode_send_time(t: float) -> bytes:
+    return struct.pack("<d", t)
 
 
-def decode_delivery(b: bytes | None) -> int | None:
-    if b is None or len(b) != 8:
+def decode_send_time(b: bytes | None) -> float | None:
+    return struct.unpack("<d", b)[0] if b is not None and len(b) == 8 else None
+
+
+def encode_delivery(n: int, sent: float | None = None) -> bytes:
+    return struct.pack("<Qd", n, math.nan if sent is None else sent)
+
+
+def decode_delivery(b: bytes | None) -> tuple[int, float | None] | None:
+    if b is None or len(b) != 16:
         return None
-    return int.from_bytes(b, "little")
+    n, sent = struct.unpack("<Qd", b)
+    return n, (None if math.isnan(sent) else sent)

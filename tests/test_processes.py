@@ -129,7 +129,7 @@ def test_bad_input_is_dropped_and_counted(cli, tmp_path):
                 sent += 1
             time.sleep(0.02)
         time.sleep(0.3)
-        replies = [r for r in session.get(keys.prefix + "/agent/2/stats", timeout=5.0) if r.ok is not None]
+        replies = [r for r in session.get(keys.stats(2), timeout=5.0) if r.ok is not None]
         stats = wire.decode(replies[0].ok.payload.to_bytes(), expect=(Reply,)).body.data
     finally:
         session.close()
