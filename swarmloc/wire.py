@@ -381,3 +381,7 @@ def decode_delivery(b: bytes | None) -> tuple[int, float | None] | None:
         return None
     n, sent = struct.unpack("<Qd", b)
     return n, (None if math.isnan(sent) else sent)
+
+
+# Importing the wire must be enough to decode anything on it: register every message type.
+from swarmloc import messages as _messages  # noqa: E402,F401

@@ -32,6 +32,7 @@ def test_lockstep_over_zenoh_equals_in_process(cli, tmp_path):
     p = cli.run("run", "wang2019", "--out", str(out), "--port", str(cli.port), "--swarm", cli.swarm, "--no-plots",
                 check=True, timeout=300)
     assert "ukf-dcl" in p.stdout and "A4" in p.stdout
+    assert "801/801" in p.stdout  # progress reached the last tick
     zen = load_npz(out / "estimates" / "ukf-dcl.npz")
     record, _, _ = in_process(S.load("wang2019"))
     ref = record.trace("ukf-dcl")
