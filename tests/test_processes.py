@@ -187,3 +187,62 @@ def test_ctrl_c_stops_every_process(cli, tmp_path):
     assert run.returncode == 130
     assert "interrupted" in stderr
     wait_gone(cli.swarm)
+
+
+def test_direct_mode_without_netsim(tmp_path):
+    """Deployment shape: agents publish radio frames straight to each other (no netsim); the
+    test plays the sensor drivers and a plain Zenoh router. UKF-DCL still equals UKF-CCL."""
+    import queue
+    import subprocess
+    import sys
+
+    from conftest import free_port
+    from netsim.world import World
+    from swarmloc.estimators import CentralizedUKF
+
+    sc = S.load("wang2019").with_overrides(**{"clock.duration": 15.0, "sensors.range.probability": 0.8})
+    port, swarm = free_port(), "direct" + str(os.getpid())
+    endpoint = f"tcp/127.0.0.1:{port}"
+    router = zenoh.open(zenoh.Config.from_json5(wire.zenoh_config("router", listen=[endpoint])))
+    keys = wire.Keys(swarm)
+    inbox = queue.SimpleQueue()
+    subs = [router.declare_subscriber(keys.prefix + "/agent/*/estimate", lambda s: inbox.put(s.payload.to_bytes())),
+            router.declare_subscriber(keys.prefix + "/radio/rx/*", lambda s: inbox.put(None))]
+    alive = queue.SimpleQueue()
+    live_sub = router.liveliness().declare_subscriber(keys.prefix + "/agent/*/alive", lambda s: alive.put(str(s.key_expr)), history=True)
+    scenario_file = tmp_path / "s.yaml"
+    scenario_file.write_text(sc.to_yaml())
+    procs = [subprocess.Popen([sys.executable, "-m", "agents", "agent", "--id", str(a), "--scenario", str(scenario_file),
+                               "--swarm", swarm, "--connect", endpoint, "--direct"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+             for a in sc.agent_ids]
+    try:
+        for _ in sc.agent_ids:
+            alive.get(timeout=30)
+        pubs = {a: router.declare_publisher(keys.sensors(a), congestion_control=zenoh.CongestionControl.BLOCK) for a in sc.agent_ids}
+        world = World(sc)
+        x0 = {a: np.array(sc.agent(a).start, float) for a in sc.agent_ids}
+        ccl = CentralizedUKF(x0, np.eye(2) * sc.estimation.initial_std**2, spread=sc.estimation.spread)
+        latest = {}
+        for _ in range(sc.clock.steps + 1):
+            frames = world.step()
+            ccl.step(frames)
+            for a in sc.agent_ids:
+                pubs[a].put(wire.encode(frames[a], 0, world.k + 1))
+            while True:  # the swarm is done with the tick when nothing moves for 0.2 s
+                try:
+                    item = inbox.get(timeout=0.2)
+                except queue.Empty:
+                    break
+                if item is not None:
+                    env = wire.decode(item)
+                    latest[env.src] = env.body
+            for a in sc.agent_ids:
+                assert latest[a].k == world.k
+                assert np.abs(latest[a].mean - ccl.x[ccl.block(a)]).max() < TOL
+                assert np.abs(latest[a].cov - ccl.P[ccl.block(a), ccl.block(a)]).max() < TOL
+    finally:
+        for p in procs:
+            p.terminate()
+        for p in procs:
+            p.wait(10)
+        router.close()
