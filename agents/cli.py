@@ -229,7 +229,8 @@ def _print_summary(out: Path) -> None:
     r = m.get("radio", {})
     console.print(f"{m['ticks']} ticks in {m['wall_time_s']:.1f} s ({m['ticks_per_s']:.0f} ticks/s); radio: "
                   f"{r.get('delivered', 0)} frames delivered, dropped {r.get('dropped', {}) or 'none'}")
-    console.print(f"run directory: [bold]{out}[/] (metrics.json, estimates/*.npz, plots/*.png)")
+    plots = ", plots/*.png" if (out / "plots").is_dir() else ""
+    console.print(f"run directory: [bold]{out}[/] (metrics.json, estimates/*.npz{plots})")
 
 
 @app.command()
@@ -324,7 +325,10 @@ def control(op: str, args: dict, swarm: str, connect: list[str] | None, timeout:
         session.close()
     for r in replies:
         if r.ok is not None:
-            body = wire.decode(r.ok.payload.to_bytes(), expect=(Reply,)).body
+            try:
+                body = wire.decode(r.ok.payload.to_bytes(), expect=(Reply,)).body
+            except wire.WireError as exc:
+                raise fail(f"unreadable reply from netsim: {exc}")
             if not body.ok:
                 raise fail(f"netsim refused {op}: {body.error}")
             return body.data

@@ -75,7 +75,7 @@ class AgentDaemon:
         self._pub_done = self.session.declare_publisher(self.keys.done(aid), **block)
         self._block = block
         self._stats_key = self.keys.stats(aid)
-        self._stats_q = self.session.declare_queryable(self._stats_key, self._on_stats)
+        self._stats_q = self.session.declare_queryable(self._stats_key, lambda q: put(("stats", q, None)))
         # Declared last: once netsim sees the token, every subscription above is in place.
         self._token = self.session.liveliness().declare_token(self.keys.alive(aid))
 
@@ -97,7 +97,7 @@ class AgentDaemon:
                 "sent": self.sent, "consumed": self.consumed, "rejected": dict(self.rejected),
                 "node_drops": dict(self.node.drops), **getattr(self.node, "stats", {})}
 
-    def _on_stats(self, query) -> None:
+    def _reply_stats(self, query) -> None:
         # Reply on our own key, not the query's: a wildcard query must not consolidate agents away.
         query.reply(self._stats_key, wire.encode(Reply(True, "", self.stats()), self.node.id, 0))
 
@@ -109,11 +109,23 @@ class AgentDaemon:
             kind, data, attachment = self.inbox.get()
             if kind == "stop":
                 break
+            if kind == "stats":
+                self._reply_stats(data)
+                continue
             try:
-                self._handle(kind, data, attachment)
-            except Exception:  # a bug in a node must not take the agent down silently mid-swarm
+                sends = self._handle(kind, data, attachment)
+            except Exception:  # a bug in a node must not take the agent down mid-swarm
                 self.rejected["node-error"] += 1
                 log.exception("agent %s: error handling %s", self.node.id, kind)
+                sends = []
+            if sends is None:
+                continue  # clock: nothing to acknowledge
+            self.handled += 1
+            for s in sends:
+                self._send(s)
+            self._publish_estimate()
+            # Always acknowledge, even a rejected input: lockstep must not wait on us for nothing.
+            self._pub_done.put(wire.encode(Done(self.node.k, self.consumed, self.sent), self.node.id, self.handled))
 
     def _reject(self, kind: str, why: str) -> None:
         self.rejected[kind] += 1
@@ -121,40 +133,36 @@ class AgentDaemon:
         if n <= 10 or n % 1000 == 0:
             log.warning("agent %s drops %s frame (%d so far): %s", self.node.id, kind, n, why)
 
-    def _handle(self, kind: str, data: bytes, attachment) -> None:
+    def _handle(self, kind: str, data: bytes, attachment) -> list | None:
+        """Radio frames to send in response; None for inputs that need no acknowledgement."""
         if kind == "clock":
             try:
                 env = wire.decode(data, expect=(Clock,))
             except wire.WireError as exc:
-                return self._reject("clock", str(exc))
+                self._reject("clock", str(exc))
+                return None
             if env.body.mode == "stop" and self.cfg.exit_on_stop:
                 self._stop.set()
-            return
+            return None
         if kind == "sensors":
             try:
                 env = wire.decode(data, expect=(Sensors,))
             except wire.WireError as exc:
-                return self._reject("sensors", str(exc))
-            sends = self.node.step(env.body)
-        else:
-            delivery = wire.decode_delivery(attachment.to_bytes() if attachment is not None else None)
-            if delivery is not None:
-                n, sent = delivery
-                self.consumed = max(self.consumed, n)
-                if sent is not None and len(self.hop_latency) < 100_000:
-                    self.hop_latency.append(time.perf_counter() - sent)
-            try:
-                env = wire.decode(data)
-            except wire.WireError as exc:
-                self._reject("radio", str(exc))
-                sends = []
-            else:
-                sends = self._radio(env)
-        self.handled += 1
-        for s in sends:
-            self._send(s)
-        self._publish_estimate()
-        self._pub_done.put(wire.encode(Done(self.node.k, self.consumed, self.sent), self.node.id, self.handled))
+                self._reject("sensors", str(exc))
+                return []
+            return self.node.step(env.body)
+        delivery = wire.decode_delivery(attachment.to_bytes() if attachment is not None else None)
+        if delivery is not None:
+            n, sent = delivery
+            self.consumed = max(self.consumed, n)
+            if sent is not None and len(self.hop_latency) < 100_000:
+                self.hop_latency.append(time.perf_counter() - sent)
+        try:
+            env = wire.decode(data)
+        except wire.WireError as exc:
+            self._reject("radio", str(exc))
+            return []
+        return self._radio(env)
 
     def _radio(self, env: wire.Envelope) -> list:
         if isinstance(env.body, LinkNack):

@@ -161,12 +161,21 @@ class NetsimServer:
 
     def _control(self, query) -> None:
         def reply(ok: bool, error: str = "", data: dict | None = None):
-            query.reply(query.key_expr, wire.encode(Reply(ok, error, data or {}), NETSIM_ID, 0))
+            query.reply(query.key_expr, wire.encode(Reply(ok, error[:500], data or {}), NETSIM_ID, 0))
 
         try:
             req = wire.decode(query.payload.to_bytes() if query.payload is not None else b"", expect=(Control,)).body
         except wire.WireError as exc:
             return reply(False, f"bad request: {exc}")
+        if not isinstance(req.args, dict):
+            return reply(False, "args must be a map")
+        try:
+            self._control_op(req, reply)
+        except Exception as exc:  # a bad request must never take netsim down
+            log.exception("control %s failed", req.op)
+            reply(False, f"{req.op} failed: {exc}")
+
+    def _control_op(self, req, reply) -> None:
         if req.op in ("cut", "restore"):
             link = req.args.get("link")
             if not (isinstance(link, list) and len(link) == 2 and all(isinstance(x, int) for x in link)):
@@ -274,7 +283,7 @@ class NetsimServer:
     def _finish(self, wall: float, agent_stats: dict) -> dict:
         # Estimates are published before each `done`, so at quiet they have all arrived.
         self._pump(lambda: False, 0.05)
-        compute_references(self.sc, self.record)
+        compute_references(self.sc, self.record, [a for a in ("il", "ukf-ccl") if a in self.sc.estimators])
         lat = np.array(self.hop_latency) * 1e6
         extra = {
             "transport": "zenoh-lockstep",
@@ -287,7 +296,7 @@ class NetsimServer:
             "agent_stats": agent_stats,
             "unresponsive_agents": sorted(self.unresponsive),
         }
-        algorithms = [a for a in ("il", "ukf-dcl", "ukf-ccl") if a in self.sc.estimators or a == "ukf-dcl"]
+        algorithms = [a for a in ("il", "ukf-dcl", "ukf-ccl") if a in self.sc.estimators or a in self.record.est]
         if self.cfg.out is None:
             from swarmloc.results import metrics
 

@@ -10,16 +10,16 @@ from typing import Annotated
 
 import numpy as np
 
-from swarmloc.wire import Array, Bool, Float, Int, ListOf, MapOf, Nested, Plain, Str, message
+from swarmloc.wire import MAX_ID, Array, Bool, Float, Int, ListOf, MapOf, Nested, Plain, Str, message
 
-Id = Annotated[int, Int(0, 2**31)]
+Id = Annotated[int, Int(0, MAX_ID)]
 Tick = Annotated[int, Int(0, 2**40)]
 Vec = Annotated[np.ndarray, Array(1)]
 Mat = Annotated[np.ndarray, Array(2)]
 SqMat = Annotated[np.ndarray, Array(2, square=True)]
-Blocks = Annotated[dict, MapOf(Int(0, 2**31), Array(2))]
+Blocks = Annotated[dict, MapOf(Int(0, MAX_ID), Array(2))]
 # A chain key: (measurer, measured, index within the tick); chains run in this order.
-ChainKey = ListOf(Int(0, 2**31), length=3)
+ChainKey = ListOf(Int(0, MAX_ID), length=3)
 
 
 # --------------------------------------------------------------------------- environment -> agent
@@ -128,8 +128,8 @@ class DclToken:
     Y: Mat
     Pz: SqMat
     nu: Vec
-    order: Annotated[list, ListOf(Int(0, 2**31))]
-    parent: Annotated[dict, MapOf(Int(0, 2**31), Int(0, 2**31))]
+    order: Annotated[list, ListOf(Int(0, MAX_ID))]
+    parent: Annotated[dict, MapOf(Int(0, MAX_ID), Int(0, MAX_ID))]
     gains: Blocks
     xz: Blocks
     pending: Annotated[list, ListOf(ChainKey)]
@@ -144,7 +144,7 @@ class DclCommit:
     key: Annotated[list, ChainKey]
     Pz: SqMat
     nu: Vec
-    parent: Annotated[dict, MapOf(Int(0, 2**31), Int(0, 2**31))]
+    parent: Annotated[dict, MapOf(Int(0, MAX_ID), Int(0, MAX_ID))]
     gains: Blocks
     xz: Blocks
     pending: Annotated[list, ListOf(ChainKey)]

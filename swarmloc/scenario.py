@@ -153,6 +153,8 @@ class Scenario(_Strict):
             bad = [a for a in f.link if a not in ids]
             if bad:
                 raise ValueError(f"faults[{i}].link names unknown agents {bad}")
+            if f.link[0] == f.link[1]:
+                raise ValueError(f"faults[{i}].link must name two different agents, got {f.link}")
         return self
 
     @property

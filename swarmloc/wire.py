@@ -28,6 +28,7 @@ SCHEMA_VERSION = 1
 MAX_FRAME_BYTES = 64 * 1024
 MAX_ARRAY_ELEMENTS = 4096
 MAX_COLLECTION = 1024
+MAX_ID = 2**31 - 1  # agent ids fit a signed 32-bit integer
 
 
 class WireError(ValueError):
@@ -114,9 +115,9 @@ class Array(Spec):
             raise WireError(f"{path}: dtype {v['dtype']!r} not allowed (only '<f8')")
         shape = v["shape"]
         if not isinstance(shape, list) or len(shape) != self.ndim or not all(
-            isinstance(s, int) and not isinstance(s, bool) and 0 <= s <= MAX_ARRAY_ELEMENTS for s in shape
+            isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape
         ):
-            raise WireError(f"{path}: bad shape {shape!r} (want {self.ndim} dims)")
+            raise WireError(f"{path}: bad shape {shape!r} (want {self.ndim} non-negative dims)")
         if self.square and len(set(shape)) != 1:
             raise WireError(f"{path}: shape {shape} not square")
         count = math.prod(shape)
@@ -283,16 +284,16 @@ def decode(data: bytes, expect: tuple[type, ...] | None = None) -> Envelope:
         raise WireError(f"not MessagePack: {exc.__class__.__name__}") from None
     if not isinstance(env, dict) or not Envelope.KEYS.issuperset(env) or "body" not in env:
         raise WireError("not an envelope")
-    if env.get("v") != SCHEMA_VERSION:
+    if type(env.get("v")) is not int or env["v"] != SCHEMA_VERSION:
         raise WireError(f"schema version {env.get('v')!r} not supported")
     cls = REGISTRY.get(env.get("type")) if isinstance(env.get("type"), str) else None
     if cls is None:
         raise WireError(f"unknown message type {env.get('type')!r}")
     if expect is not None and cls not in expect:
         raise WireError(f"message type {cls.TYPE!r} not expected here")
-    src = Int(0, 2**31).decode(env.get("src"), "src")
-    seq = Int(0, 2**63).decode(env.get("seq"), "seq")
-    dst = Optional(Int(0, 2**31)).decode(env.get("dst"), "dst")
+    src = Int(0, MAX_ID).decode(env.get("src"), "src")
+    seq = Int(0, 2**63 - 1).decode(env.get("seq"), "seq")
+    dst = Optional(Int(0, MAX_ID)).decode(env.get("dst"), "dst")
     return Envelope(cls.TYPE, src, seq, decode_body(cls, env["body"]), dst)
 
 

@@ -30,6 +30,7 @@ def base():
         (lambda d: d.update(version=9), "version"),
         (lambda d: d.update(faults=[{"at": 1, "action": "cut", "link": [1, 99]}]), "unknown agents"),
         (lambda d: d["world"]["agents"][1].update(id=1), "unique"),
+        (lambda d: d.update(faults=[{"at": 1, "action": "cut", "link": [1, 1]}]), "two different agents"),
     ],
 )
 def test_errors_name_the_field(edit, field):

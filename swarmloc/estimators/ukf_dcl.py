@@ -150,7 +150,10 @@ class UkfDclNode(Node):
 
     def _release_held(self) -> list[Send]:
         ready = [(s, m) for s, m in self.held if m.k == self.k and m.epoch == self.epoch]
-        self.held = [(s, m) for s, m in self.held if m.k > self.k or (m.k == self.k and m.epoch > self.epoch)]
+        later = [(s, m) for s, m in self.held if m.k > self.k or (m.k == self.k and m.epoch > self.epoch)]
+        for _ in range(len(self.held) - len(ready) - len(later)):
+            self.drop("stale", "held frame overtaken")
+        self.held = later
         out = []
         for src, m in ready:
             out += self.receive(src, m)
@@ -177,9 +180,19 @@ class UkfDclNode(Node):
         if self._preempted(key):
             return self.drop("preempted", str(key))
 
+        pending = {tuple(k) for k in msg.pending} | set(self.pending)
         P_mn = self.row.get(m, np.zeros((d, d))).T  # our copy of P_mn = P_nm^T
         P_sub = np.block([[msg.row_m[m], P_mn], [P_mn.T, self.row[self.id]]])
-        L = np.linalg.cholesky(P_sub)
+        try:
+            L = np.linalg.cholesky(P_sub)
+        except np.linalg.LinAlgError:
+            # The pair's covariance is not positive definite (copies of P_mn out of step after
+            # a partition): refuse the measurement, but run the chain empty so the keys it
+            # preempted still get their turn.
+            self.drop("not-positive-definite", str(key))
+            empty = DclToken(self.k, self.epoch, list(key), np.eye(2 * d), np.zeros((2 * d, dz)), np.eye(dz),
+                             np.zeros(dz), [m, n], {n: m}, {}, {}, [list(k) for k in sorted(pending)])
+            return self._forward(empty)
         x_sub = np.concatenate([msg.x_m, self.x])
         z_bar, Pzz, Y = self.ut.measurement_moments(x_sub, L, self.meas.h_joint)
         Pz = Pzz + msg.R
@@ -195,7 +208,6 @@ class UkfDclNode(Node):
             if P_j_mn.any():
                 xz[j] = kalman.solve_lower(L, P_j_mn.T).T @ Y
 
-        pending = {tuple(k) for k in msg.pending} | set(self.pending)
         token = DclToken(self.k, self.epoch, list(key), L, Y, Pz, nu, [m, n], {n: m}, gains, xz,
                          [list(k) for k in sorted(pending)])
         return self._forward(token)
