@@ -98,6 +98,15 @@ class Beacon:
     position: Vec
 
 
+# A correlation group as seen by one node: [gid0, gid1, gid2, member, member, ...]. Every
+# member of a group holds the same gid and members; cross-covariances outside it are zero.
+Groups = Annotated[dict, MapOf(Int(0, MAX_ID), ListOf(Int(0, 2**40), max_len=3 + 1024))]
+IdList = Annotated[list, ListOf(Int(0, MAX_ID))]
+
+# Token status: what happened to the measurement on the way.
+CHAIN_OK, CHAIN_UNREACHABLE, CHAIN_REFUSED = 0, 1, 2
+
+
 @message("dcl.start")
 class DclStart:
     """UKF-DCL, measurer m -> measured n: the measurement and m's side of the pair."""
@@ -108,7 +117,8 @@ class DclStart:
     z: Vec
     R: SqMat
     x_m: Vec
-    row_m: Blocks
+    P_mm: SqMat
+    group_m: Annotated[list, ListOf(Int(0, 2**40), max_len=3 + 1024)]
     pending: Annotated[list, ListOf(ChainKey)]
 
 
@@ -119,25 +129,35 @@ class DclToken:
     L is the lower Cholesky factor of the (m, n) covariance block (A11, A21, A22), Y the
     sigma-point term with Pxz_i = [P_im P_in] L^-T Y, so any node forms its update weight from
     its own row alone (eq. 20). Gains accumulate as nodes join; nothing is applied until commit.
+    Each node also adds its correlation group, so the measurer can tell whether the chain
+    reached every node its update touches.
     """
 
     k: Tick
     epoch: Annotated[int, Int(0)]
     key: Annotated[list, ChainKey]
+    status: Annotated[int, Int(0, 2)]
     L: SqMat
     Y: Mat
     Pz: SqMat
     nu: Vec
-    order: Annotated[list, ListOf(Int(0, MAX_ID))]
+    order: IdList
     parent: Annotated[dict, MapOf(Int(0, MAX_ID), Int(0, MAX_ID))]
     gains: Blocks
-    xz: Blocks
+    groups: Groups
     pending: Annotated[list, ListOf(ChainKey)]
 
 
 @message("dcl.commit")
 class DclCommit:
-    """UKF-DCL commit, flooded down the chain's tree from the measurer once every gain is known."""
+    """UKF-DCL commit, flooded down the chain's tree from the measurer.
+
+    Either applies the measurement (gains non-empty; the groups of m and n merge into `merge`),
+    or splits groups the chain could not reach whole (`splits`: [group size, part members...]
+    per part; each part's covariance block is scaled by size/len(part) and decorrelated from
+    the rest), or does nothing but advance the epoch. `finished` says whether the measurement
+    is done (applied or dropped) or will be retried in the next epoch.
+    """
 
     k: Tick
     epoch: Annotated[int, Int(0)]
@@ -146,7 +166,9 @@ class DclCommit:
     nu: Vec
     parent: Annotated[dict, MapOf(Int(0, MAX_ID), Int(0, MAX_ID))]
     gains: Blocks
-    xz: Blocks
+    merge: IdList
+    splits: Annotated[list, ListOf(ListOf(Int(0, MAX_ID), max_len=1025))]
+    finished: Annotated[bool, Bool()]
     pending: Annotated[list, ListOf(ChainKey)]
 
 

@@ -155,14 +155,20 @@ def test_malformed_but_decodable_chain_frames_are_dropped():
     node = cap.nodes[2]
     x = node.x.copy()
     key = [1, 2, 0]
-    bad_shapes = DclToken(node.k, node.epoch, key, np.eye(3), np.ones((4, 1)), np.eye(1), np.zeros(1), [1], {}, {}, {}, [])
-    assert node.receive(1, bad_shapes) == []
-    singular = DclToken(node.k, node.epoch, key, np.zeros((4, 4)), np.ones((4, 1)), np.eye(1), np.zeros(1), [1], {},
-                         {1: np.zeros((2, 1))}, {}, [])
-    assert node.receive(1, singular) == []
-    not_for_me = DclCommit(node.k, node.epoch, key, np.eye(1), np.zeros(1), {}, {9: np.zeros((2, 1))}, {}, [])
+    def token(**over):
+        f = dict(k=node.k, epoch=node.epoch, key=key, status=0, L=np.eye(4), Y=np.ones((4, 1)), Pz=np.eye(1),
+                 nu=np.zeros(1), order=[1], parent={}, gains={1: np.zeros((2, 1))}, groups={1: [0, 0, 1, 1]}, pending=[])
+        f.update(over)
+        return DclToken(**f)
+
+    assert node.receive(1, token(L=np.eye(3))) == []
+    assert node.receive(1, token(L=np.zeros((4, 4)))) == []  # singular factor
+    assert node.receive(1, token(groups={1: [0, 0]})) == []
+    not_for_me = DclCommit(node.k, node.epoch, key, np.eye(1), np.zeros(1), {}, {9: np.zeros((2, 1))}, [], [], True, [])
     assert node.receive(1, not_for_me) == []
-    assert sum(node.drops.values()) >= 3
+    bad_split = DclCommit(node.k, node.epoch, key, np.eye(1), np.zeros(1), {2: 1}, {}, [], [[1, 2, 3, 4]], True, [])
+    assert node.receive(1, bad_split) == []
+    assert sum(node.drops.values()) >= 5
     assert np.array_equal(node.x, x)
 
 

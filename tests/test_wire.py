@@ -11,8 +11,9 @@ from swarmloc.messages import Beacon, DclToken, Done, EstimateMsg, OdometryMsg, 
 
 
 def token(**over):
-    fields = dict(k=3, epoch=0, key=[1, 2, 0], L=np.eye(4), Y=np.ones((4, 1)), Pz=np.eye(1), nu=np.zeros(1),
-                  order=[1, 2], parent={2: 1}, gains={1: np.zeros((2, 1))}, xz={}, pending=[[1, 2, 0]])
+    fields = dict(k=3, epoch=0, key=[1, 2, 0], status=0, L=np.eye(4), Y=np.ones((4, 1)), Pz=np.eye(1), nu=np.zeros(1),
+                  order=[1, 2], parent={2: 1}, gains={1: np.zeros((2, 1))}, groups={1: [0, 0, 1, 1], 2: [0, 0, 2, 2]},
+                  pending=[[1, 2, 0]])
     fields.update(over)
     return DclToken(**fields)
 

@@ -1,26 +1,32 @@
 """UKF-DCL (Wang et al. 2019) as a sans-I/O node, extended to reach the whole connected swarm.
 
-Each node keeps its own mean x_i and its row of the joint covariance, P_ij for every j
-(a missing block is zero: never correlated). One relative measurement z_mn runs one chain:
+Each node keeps its own mean x_i and its row of the joint covariance, P_ij for every j in its
+correlation group (outside the group the blocks are exactly zero). One relative measurement
+z_mn runs one chain (docs/ukf-dcl.md has the picture):
 
-1. start   m -> n: the measurement, x_m and m's row. n now holds the (m, n) pair, forms the
-           lower Cholesky factor L of its 2x2-block covariance (A11, A21, A22 of eq. 15-16,
-           after the eq. 17 reordering), runs the unscented transform on [x_m; x_n] and gets
-           z_bar, Pz and Y, with Pxz_i = A_i Y for every node i (eq. 20).
+1. start   m -> n: the measurement, x_m, P_mm and m's group. n now holds the (m, n) pair,
+           forms the lower Cholesky factor L of its 2x2-block covariance (A11, A21, A22 of
+           eq. 15-16, after the eq. 17 reordering), runs the unscented transform on
+           [x_m; x_n] and gets z_bar, Pz and Y, with Pxz_i = A_i Y for every node i (eq. 20).
 2. token   depth first through the radio graph: each node it reaches for the first time
-           solves its A_i = [P_im P_in] L^-T from its own row and adds its gain K_i. The next
-           hop is the nearest unvisited neighbour (the paper's serial path); a node with none
-           sends the token back to the node it came from. Nothing is applied yet.
-3. commit  when the token is back at m with nobody left to visit, every gain is known: m
-           floods a commit down the chain's tree and every node applies
-           x_i += K_i nu and P_ij -= K_i Pz K_j^T for all j (eq. 21-23, minus per the erratum).
-           Because every node applies the same gains, each row equals the centralized P; the
-           paper's "later node holds the fresh copy" problem does not arise.
+           solves its A_i = [P_im P_in] L^-T from its own row, adds its gain K_i and its group.
+           The next hop is the nearest unvisited neighbour (the paper's serial path); a node
+           with none sends the token back to the node it came from. Nothing is applied yet.
+3. commit  when the token is back at m with nobody left to visit, every gain is known and m
+           floods a commit down the chain's tree: every node applies x_i += K_i nu and
+           P_ij -= K_i Pz K_j^T for all j (eq. 21-23, minus per the erratum). Every node
+           applies the same gains, so each row equals the centralized P.
 
-Blocks P_ij with j outside the chain's reach are corrected with Pxz_j, which n computes from
-m's row and its own (it needs only P_jm and P_jn), so the joint covariance stays the one of
-the gain actually applied (K_j = 0 for unreached nodes). j's own copy of that block is then
-stale until the links return; see docs/ukf-dcl.md.
+Correlation groups keep this exact-or-conservative when the radio splits the swarm. A
+measurement touches exactly the nodes correlated with m or n, i.e. the groups of m and n; if
+the chain reached every member of every group it met, the update is exact and the two groups
+merge. If some member was out of reach, the chain commits a split instead: the reachable part
+p of group G scales its covariance block by |G|/|p| and drops its cross-covariances with the
+rest. Each part of G does the same when it next meets the split, and the fractions |p|/|G|
+sum to one, so the block-diagonal result bounds the true joint covariance (covariance
+intersection with weights |p|/|G|). The measurement then runs again on the split groups.
+Copies of a cross-covariance can therefore never go out of step: either both holders update
+it in the same commit, or both drop it.
 
 Several measurements in one tick run as successive chains in key order (m, n, q). Every
 measurer starts its chain at once; a node drops any token whose key is larger than one of its
@@ -32,10 +38,13 @@ chain. `epoch` counts commits within the tick: a frame of another epoch or tick 
 
 from __future__ import annotations
 
+from collections import defaultdict
+
 import numpy as np
 
 from swarmloc import kalman
-from swarmloc.messages import Beacon, DclCommit, DclStart, DclToken, Sensors
+from swarmloc.messages import (CHAIN_OK, CHAIN_REFUSED, CHAIN_UNREACHABLE, Beacon, DclCommit, DclStart, DclToken,
+                               Sensors)
 from swarmloc.models import Range
 from swarmloc.node import Estimate, Node, Send, odometry_of
 
@@ -51,21 +60,30 @@ class UkfDclNode(Node):
         self.meas = Range(self.model)
         self.row: dict[int, np.ndarray] = {self.id: self.P}
         del self.P  # the own block lives in self.row; one copy only
+        self.gid: list[int] = [0, 0, self.id]  # every node starts alone, uncorrelated
+        self.members: list[int] = [self.id]
         self.epoch = 0
-        self.pending: dict[Key, tuple[np.ndarray, np.ndarray]] = {}  # own measurements not yet committed
+        self.pending: dict[Key, tuple[np.ndarray, np.ndarray]] = {}  # own measurements not yet finished
         self.known_pending: set[Key] = set()  # keys of this tick seen from others
         self.beacons: dict[int, dict[int, np.ndarray]] = {}  # j -> {tick: position}
         self.neighbours: dict[int, np.ndarray] = {}  # snapshot for this tick
         self.held: list[tuple[int, object]] = []  # early frames: (src, msg)
-        self.stats = {"chains_committed": 0, "measurements_used": 0, "measurements_dropped": 0}
+        self.stats = {"chains_committed": 0, "measurements_used": 0, "measurements_dropped": 0, "group_splits": 0}
 
-    # ------------------------------------------------------------------ estimate
+    # ------------------------------------------------------------------ state
 
     def estimate(self) -> Estimate:
         return Estimate(self.k, self.x.copy(), self.row[self.id].copy())
 
     def covariance_row(self) -> dict[int, np.ndarray]:
         return {j: b.copy() for j, b in self.row.items()}
+
+    def _group(self) -> list[int]:
+        return [*self.gid, *self.members]
+
+    def _block(self, j: int) -> np.ndarray:
+        b = self.row.get(j)
+        return np.zeros((self.model.state_dim,) * 2) if b is None else b
 
     # ------------------------------------------------------------------ tick
 
@@ -74,8 +92,7 @@ class UkfDclNode(Node):
             return self.drop("stale-tick", f"sensors k={sensors.k} at k={self.k}")
         if not self.model.identity_transition:
             raise NotImplementedError("UKF-DCL here needs F = I (cross-covariances kept by prediction)")
-        unfinished = len(self.pending)
-        self.stats["measurements_dropped"] += unfinished
+        self.stats["measurements_dropped"] += len(self.pending)  # chains that never finished
         self.k, self.epoch = sensors.k, 0
         self.pending.clear()
         self.known_pending.clear()
@@ -115,10 +132,8 @@ class UkfDclNode(Node):
         if key != self._min_pending():
             return []
         z, R = self.pending[key]
-        msg = DclStart(
-            self.k, self.epoch, list(key), z, R, self.x.copy(), self.covariance_row(),
-            [list(k) for k in sorted(self.pending)],
-        )
+        msg = DclStart(self.k, self.epoch, list(key), z, R, self.x.copy(), self.row[self.id].copy(), self._group(),
+                       [list(k) for k in sorted(self.pending)])
         return [Send(msg, key[1])]
 
     # ------------------------------------------------------------------ radio
@@ -166,50 +181,44 @@ class UkfDclNode(Node):
 
     # ------------------------------------------------------------------ chain steps
 
+    def _token(self, key, status, order, parent, groups, pending, L=None, Y=None, Pz=None, nu=None, gains=None):
+        d, dz = self.model.state_dim, self.meas.dim
+        return DclToken(
+            self.k, self.epoch, list(key), status,
+            np.eye(2 * d) if L is None else L, np.zeros((2 * d, dz)) if Y is None else Y,
+            np.eye(dz) if Pz is None else Pz, np.zeros(dz) if nu is None else nu,
+            order, parent, gains or {}, groups, [list(k) for k in sorted(pending)],
+        )
+
     def _on_start(self, src: int, msg: DclStart) -> list[Send]:
         key = tuple(msg.key)
         m, n, _ = key
         d, dz = self.model.state_dim, self.meas.dim
         if n != self.id or m != src:
             return self.drop("misrouted", f"start {key}")
-        if msg.x_m.shape != (d,) or msg.z.shape != (dz,) or msg.R.shape != (dz, dz):
+        if msg.x_m.shape != (d,) or msg.P_mm.shape != (d, d) or msg.z.shape != (dz,) or msg.R.shape != (dz, dz):
             return self.drop("shape", "start")
-        if any(b.shape != (d, d) for b in msg.row_m.values()) or m not in msg.row_m:
-            return self.drop("shape", "start row")
+        if len(msg.group_m) < 4 or m not in msg.group_m[3:]:
+            return self.drop("invalid", "start group")
         self.known_pending.update(tuple(k) for k in msg.pending)
         if self._preempted(key):
             return self.drop("preempted", str(key))
 
         pending = {tuple(k) for k in msg.pending} | set(self.pending)
-        P_mn = self.row.get(m, np.zeros((d, d))).T  # our copy of P_mn = P_nm^T
-        P_sub = np.block([[msg.row_m[m], P_mn], [P_mn.T, self.row[self.id]]])
+        groups = {m: msg.group_m, n: self._group()}
+        P_nm = self._block(m)
+        P_sub = np.block([[msg.P_mm, P_nm.T], [P_nm, self.row[self.id]]])
         try:
             L = np.linalg.cholesky(P_sub)
         except np.linalg.LinAlgError:
-            # The pair's covariance is not positive definite (copies of P_mn out of step after
-            # a partition): refuse the measurement, but run the chain empty so the keys it
-            # preempted still get their turn.
+            # Cannot happen with consistent groups; if it does, refuse rather than compute
+            # garbage, and let the chain run empty so the keys it preempted get their turn.
             self.drop("not-positive-definite", str(key))
-            empty = DclToken(self.k, self.epoch, list(key), np.eye(2 * d), np.zeros((2 * d, dz)), np.eye(dz),
-                             np.zeros(dz), [m, n], {n: m}, {}, {}, [list(k) for k in sorted(pending)])
-            return self._forward(empty)
-        x_sub = np.concatenate([msg.x_m, self.x])
-        z_bar, Pzz, Y = self.ut.measurement_moments(x_sub, L, self.meas.h_joint)
+            return self._forward(self._token(key, CHAIN_REFUSED, [m, n], {n: m}, groups, pending))
+        z_bar, Pzz, Y = self.ut.measurement_moments(np.concatenate([msg.x_m, self.x]), L, self.meas.h_joint)
         Pz = Pzz + msg.R
-        nu = msg.z - z_bar
         gains = {m: kalman.gain(L[:d] @ Y, Pz), n: kalman.gain(L[d:] @ Y, Pz)}
-
-        # Pxz_j for every other node either row mentions, for blocks with nodes the chain
-        # may not reach (see module docstring).
-        xz = {}
-        zero = np.zeros((d, d))
-        for j in (set(msg.row_m) | set(self.row)) - {m, n}:
-            P_j_mn = np.hstack([msg.row_m.get(j, zero).T, self.row.get(j, zero).T])
-            if P_j_mn.any():
-                xz[j] = kalman.solve_lower(L, P_j_mn.T).T @ Y
-
-        token = DclToken(self.k, self.epoch, list(key), L, Y, Pz, nu, [m, n], {n: m}, gains, xz,
-                         [list(k) for k in sorted(pending)])
+        token = self._token(key, CHAIN_OK, [m, n], {n: m}, groups, pending, L, Y, Pz, msg.z - z_bar, gains)
         return self._forward(token)
 
     def _on_token(self, src: int, msg: DclToken) -> list[Send]:
@@ -217,7 +226,7 @@ class UkfDclNode(Node):
         d, dz = self.model.state_dim, self.meas.dim
         if msg.L.shape != (2 * d, 2 * d) or msg.Y.shape != (2 * d, dz) or msg.Pz.shape != (dz, dz) or msg.nu.shape != (dz,):
             return self.drop("shape", "token")
-        if any(g.shape != (d, dz) for g in msg.gains.values()) or any(g.shape != (d, dz) for g in msg.xz.values()):
+        if any(g.shape != (d, dz) for g in msg.gains.values()) or any(len(g) < 4 for g in msg.groups.values()):
             return self.drop("shape", "token gains")
         self.known_pending.update(tuple(k) for k in msg.pending)
         if self._preempted(key):
@@ -225,21 +234,21 @@ class UkfDclNode(Node):
         if self.id in msg.order:
             return self._forward(msg)  # backtracking through us
         gains = dict(msg.gains)
-        if gains:  # an empty chain (measurement abandoned) only gathers keys and sequences
+        if msg.status == CHAIN_OK:
             m, n, _ = key
-            zero = np.zeros((d, d))
-            P_i_mn = np.hstack([self.row.get(m, zero), self.row.get(n, zero)])
+            P_i_mn = np.hstack([self._block(m), self._block(n)])
             A_i = kalman.solve_lower(msg.L, P_i_mn.T).T
             gains[self.id] = kalman.gain(A_i @ msg.Y, msg.Pz)
         pending = {tuple(k) for k in msg.pending} | set(self.pending)
         token = DclToken(
-            msg.k, msg.epoch, msg.key, msg.L, msg.Y, msg.Pz, msg.nu, msg.order + [self.id],
-            {**msg.parent, self.id: src}, gains, msg.xz, [list(k) for k in sorted(pending)],
+            msg.k, msg.epoch, msg.key, msg.status, msg.L, msg.Y, msg.Pz, msg.nu, msg.order + [self.id],
+            {**msg.parent, self.id: src}, gains, {**msg.groups, self.id: self._group()},
+            [list(k) for k in sorted(pending)],
         )
         return self._forward(token)
 
     def _forward(self, token: DclToken) -> list[Send]:
-        """Depth-first step: nearest unvisited neighbour, else back to our parent, else commit."""
+        """Depth-first step: nearest unvisited neighbour, else back to our parent, else finish."""
         visited = set(token.order)
         here = self.model.position(self.x)
         candidates = [(float(np.linalg.norm(p - here)), j) for j, p in self.neighbours.items() if j not in visited]
@@ -249,9 +258,29 @@ class UkfDclNode(Node):
             return [Send(token, token.parent[self.id])]
         if self.id != token.key[0]:
             return self.drop("orphan-token", str(token.key))
-        commit = DclCommit(token.k, token.epoch, token.key, token.Pz, token.nu, token.parent,
-                           token.gains, token.xz, token.pending)
-        return self._on_commit(self.id, commit)
+        return self._on_commit(self.id, self._decide(token))
+
+    def _decide(self, token: DclToken) -> DclCommit:
+        """At the measurer, all nodes visited: apply, split the groups first, or drop."""
+        by_gid: dict[tuple, list[int]] = defaultdict(list)
+        for i, g in token.groups.items():
+            by_gid[tuple(g[:3])].append(i)
+        splits = []
+        for gid, nodes in sorted(by_gid.items()):
+            members = {j for i in nodes for j in token.groups[i][3:]}
+            if members != set(nodes):
+                splits.append([len(members), *sorted(nodes)])
+        empty = {}
+        common = dict(k=token.k, epoch=token.epoch, key=token.key, parent=token.parent,
+                      pending=token.pending)
+        if splits:
+            retry = token.status != CHAIN_UNREACHABLE
+            return DclCommit(Pz=token.Pz, nu=token.nu, gains=empty, merge=[], splits=splits, finished=not retry, **common)
+        if token.status != CHAIN_OK:
+            return DclCommit(Pz=token.Pz, nu=token.nu, gains=empty, merge=[], splits=[], finished=True, **common)
+        m, n, _ = token.key
+        merge = sorted(set(token.groups[m][3:]) | set(token.groups[n][3:]))
+        return DclCommit(Pz=token.Pz, nu=token.nu, gains=token.gains, merge=merge, splits=[], finished=True, **common)
 
     def link_failed(self, dst: int, msg) -> list[Send]:
         """A unicast did not arrive: forget that neighbour for this tick and route around it."""
@@ -261,10 +290,8 @@ class UkfDclNode(Node):
         if isinstance(msg, DclStart):
             # The measured platform is out of reach: the measurement is lost, but the chain
             # still has to run (empty) so the keys it preempted get their turn.
-            d, dz = self.model.state_dim, self.meas.dim
-            token = DclToken(self.k, self.epoch, msg.key, np.eye(2 * d), np.zeros((2 * d, dz)), np.eye(dz),
-                             np.zeros(dz), [self.id], {}, {}, {}, [list(k) for k in sorted(self.pending)])
-            return self._forward(token)
+            return self._forward(self._token(msg.key, CHAIN_UNREACHABLE, [self.id], {}, {self.id: self._group()},
+                                             set(self.pending)))
         if msg.parent.get(self.id) == dst:
             return self.drop("chain-broken", f"parent {dst} unreachable")
         return self._forward(msg)
@@ -278,24 +305,34 @@ class UkfDclNode(Node):
             return self.drop("misrouted", f"commit {key} without our gain")
         if msg.Pz.shape != (dz, dz) or msg.nu.shape != (dz,) or any(g.shape != (d, dz) for g in msg.gains.values()):
             return self.drop("shape", "commit")
+        if any(len(s) < 2 or s[0] < len(s) - 1 for s in msg.splits):
+            return self.drop("invalid", "commit splits")
+        row, gid, members = dict(self.row), self.gid, self.members
+        for size, *part in msg.splits:
+            if self.id in part:
+                # Covariance-intersection bound with weight |part|/|G| (module docstring).
+                f = size / len(part)
+                row = {j: f * b for j, b in row.items() if j in part}
+                gid, members = [msg.k, msg.epoch, min(part)], sorted(part)
+                self.stats["group_splits"] += 1
+        x = self.x
         if msg.gains:
             K_i = msg.gains[self.id]
-            new_row = dict(self.row)
             for j, K_j in msg.gains.items():
-                new_row[j] = new_row.get(j, np.zeros((d, d))) - kalman.covariance_decrement(K_i, msg.Pz, K_j)
-            for j, xz_j in msg.xz.items():
-                if j not in msg.gains:
-                    new_row[j] = new_row.get(j, np.zeros((d, d))) - K_i @ xz_j.T
-            if not all(np.isfinite(b).all() for b in new_row.values()):
-                return self.drop("invalid", "non-finite update")
-            self.x = self.x + K_i @ msg.nu
-            self.row = new_row
+                row[j] = row.get(j, np.zeros((d, d))) - kalman.covariance_decrement(K_i, msg.Pz, K_j)
+            x = self.x + K_i @ msg.nu
+            if self.id in msg.merge:
+                gid, members = [msg.k, msg.epoch, key[0]], list(msg.merge)
+            row = {j: b for j, b in row.items() if j in members}
+        if not np.isfinite(x).all() or not all(np.isfinite(b).all() for b in row.values()):
+            return self.drop("invalid", "non-finite update")
+        self.x, self.row, self.gid, self.members = x, row, gid, members
         self.epoch += 1
         self.stats["chains_committed"] += 1
-        if key in self.pending:
+        if key in self.pending and msg.finished:
             del self.pending[key]
             self.stats["measurements_used" if msg.gains else "measurements_dropped"] += 1
-        self.known_pending = {tuple(k) for k in msg.pending} - {key}
+        self.known_pending = {tuple(k) for k in msg.pending} - ({key} if msg.finished else set())
 
         out = [Send(msg, c) for c, p in sorted(msg.parent.items()) if p == self.id]
         out += self._start_next()
