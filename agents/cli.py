@@ -60,7 +60,8 @@ def list_scenarios():
     for name in scenarios.builtin_names():
         sc = scenarios.load(name)
         t.add_row(name, str(len(sc.world.agents)), f"{sc.clock.duration:g} s @ {sc.clock.dt:g} s",
-                  f"{sc.radio.model} {sc.radio.range:g} m", sc.description)
+                  " ".join([sc.radio["model"], *([f"{sc.radio['range_m']:g} m"] if "range_m" in sc.radio else [])]),
+                  sc.description)
     console.print(t)
 
 
@@ -100,16 +101,31 @@ class Swarm:
     def __init__(self, logs: Path):
         self.logs = logs
         self.procs: dict[str, subprocess.Popen] = {}
+        self.agent_args: dict[int, list[str]] = {}
+        self.killed: set[str] = set()  # killed on purpose (a kill fault), not crashed
 
     def spawn(self, name: str, args: list[str]) -> subprocess.Popen:
-        f = open(self.logs / f"{name}.log", "wb")
+        f = open(self.logs / f"{name}.log", "ab")
         p = subprocess.Popen([sys.executable, *args], stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                              start_new_session=True)
         self.procs[name] = p
         return p
 
     def crashed(self) -> list[tuple[str, int]]:
-        return [(n, p.returncode) for n, p in self.procs.items() if p.poll() not in (None, 0)]
+        return [(n, p.returncode) for n, p in self.procs.items() if p.poll() not in (None, 0) and n not in self.killed]
+
+    def on_event(self, kind: str, aid: int) -> None:
+        """netsim's kill/restart faults: the launcher owns the processes, so it carries them out."""
+        name = f"agent-{aid}"
+        if kind == "kill" and name in self.procs:
+            self.killed.add(name)
+            self.procs[name].kill()
+            self.procs[name].wait()
+            console.print(f"[yellow]killed {name} (fault)[/]")
+        elif kind == "restart" and aid in self.agent_args:
+            self.killed.discard(name)
+            self.spawn(name, self.agent_args[aid])
+            console.print(f"[yellow]restarted {name} (fault); it resumes from its checkpoint[/]")
 
     def tail(self, name: str, lines: int = 15) -> str:
         text = (self.logs / f"{name}.log").read_text(errors="replace").splitlines()
@@ -142,6 +158,8 @@ def run_swarm(sc_arg: str, out: Path | None, seed: int | None, swarm: str, port:
     out = out or Path("runs") / f"{sc.name}-{datetime.now():%Y%m%d-%H%M%S}"
     out.mkdir(parents=True, exist_ok=True)
     (out / "logs").mkdir(exist_ok=True)
+    for old in [*(out / "logs").glob("*.log"), *(out / "logs").glob("*.state.npy")]:
+        old.unlink()  # a reused run directory must not resume agents from an older run
     scenario_file = out / "logs" / "scenario.input.yaml"
     scenario_file.write_text(sc.to_yaml())
 
@@ -155,8 +173,9 @@ def run_swarm(sc_arg: str, out: Path | None, seed: int | None, swarm: str, port:
         if net.poll() is not None:
             raise fail(f"netsim failed to start (exit code {net.returncode}):\n{procs.tail('netsim')}", 1)
         for a in sc.agent_ids:
-            procs.spawn(f"agent-{a}", ["-m", "agents", "agent", "--id", str(a), "--scenario", str(scenario_file),
-                                       "--swarm", swarm, "--connect", endpoint])
+            procs.agent_args[a] = ["-m", "agents", "agent", "--id", str(a), "--scenario", str(scenario_file), "--swarm", swarm,
+                                   "--connect", endpoint, "--state-file", str(out / "logs" / f"agent-{a}.state.npy")]
+            procs.spawn(f"agent-{a}", procs.agent_args[a])
         _watch(procs, net, sc, swarm, endpoint)
     except KeyboardInterrupt:
         procs.stop()
@@ -177,13 +196,21 @@ def _watch(procs: Swarm, net: subprocess.Popen, sc, swarm: str, endpoint: str) -
     import zenoh
 
     ticks: _queue.SimpleQueue = _queue.SimpleQueue()
+    events: _queue.SimpleQueue = _queue.SimpleQueue()
     session = zenoh.open(zenoh.Config.from_json5(wire.zenoh_config("client", connect=[endpoint])))
     sub = session.declare_subscriber(wire.Keys(swarm).clock, lambda s: ticks.put(s.payload.to_bytes()))
+    sub_events = session.declare_subscriber(wire.Keys(swarm).events, lambda s: events.put(s.payload.to_bytes()))
     try:
         with Progress(TextColumn("[progress.description]{task.description}"), BarColumn(), MofNCompleteColumn(),
                       TextColumn("ticks"), TimeElapsedColumn(), TimeRemainingColumn(), console=console, transient=False) as bar:
             task = bar.add_task("waiting for agents", total=sc.clock.steps + 1)
             while net.poll() is None:
+                while not events.empty():
+                    try:
+                        ev = wire.decode(events.get_nowait()).body
+                        procs.on_event(ev.kind, ev.node)
+                    except wire.WireError:
+                        pass
                 crashed = [(n, c) for n, c in procs.crashed() if n != "netsim"]
                 if crashed:
                     name, code = crashed[0]
@@ -203,6 +230,7 @@ def _watch(procs: Swarm, net: subprocess.Popen, sc, swarm: str, endpoint: str) -
                         pass
     finally:
         sub.undeclare()
+        sub_events.undeclare()
         session.close()
 
 
@@ -267,6 +295,7 @@ def agent(
     listen: Optional[list[str]] = typer.Option(None, "--listen", help="Zenoh endpoint to listen on (peer mode)"),
     mode: str = typer.Option("client", "--mode", help="Zenoh mode: client (of netsim) or peer"),
     direct: bool = typer.Option(False, "--direct", help="no netsim: publish radio frames straight to peers"),
+    state_file: Optional[Path] = typer.Option(None, "--state-file", help="checkpoint every tick here; resume from it at start"),
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ):
     """Start one agent daemon (used by `run`; on a companion computer, run it by hand)."""
@@ -296,7 +325,7 @@ def agent(
     else:
         raise fail("give --scenario or --start")
     cfg = AgentConfig(swarm=swarm, connect=tuple(connect or [f"tcp/127.0.0.1:{DEFAULT_PORT}"]),
-                      listen=tuple(listen or ()), mode=mode, direct=direct)
+                      listen=tuple(listen or ()), mode=mode, direct=direct, state_file=state_file)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     try:
         run_agent(node, cfg)
@@ -335,38 +364,216 @@ def control(op: str, args: dict, swarm: str, connect: list[str] | None, timeout:
     raise fail(f"no netsim answered on swarm '{swarm}' at {', '.join(endpoint)} (is `swarmloc run` running?)")
 
 
-def _link_command(op: str):
-    def cmd(a: int = typer.Argument(..., help="agent id"), b: int = typer.Argument(..., help="agent id"),
-            swarm: str = SwarmOpt, connect: Optional[list[str]] = ConnectOpt):
-        data = control(op, {"link": [a, b]}, swarm, connect)
-        console.print(f"{op} {a}-{b}: applies from tick {data['applies_at_tick']}")
-
-    cmd.__doc__ = f"{op.capitalize()} the radio link between agents A and B (both directions)."
-    return cmd
+ForOpt = typer.Option(None, "--for", help="clear the fault automatically after this many seconds (simulated)")
 
 
-inject_app.command("cut")(_link_command("cut"))
-inject_app.command("restore")(_link_command("restore"))
+def inject(fault: dict, swarm: str, connect: list[str] | None, duration: float | None) -> None:
+    from swarmloc.faults import FaultError, parse_fault
+
+    if duration is not None:
+        fault["duration"] = duration
+    try:
+        parse_fault(fault)  # same schema netsim uses: fail here, with the field named
+    except FaultError as exc:
+        raise fail(f"bad fault: {exc}")
+    data = control("inject", {"fault": fault}, swarm, connect)
+    shown = {k: v for k, v in data["fault"].items() if k != "action"}
+    console.print(f"{fault['action']} {shown}: applies from tick {data['applies_at_tick']}")
+
+
+def _ids(text: str) -> list[int]:
+    try:
+        return [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise fail(f"expected comma-separated agent ids, got {text!r}")
+
+
+A = typer.Argument(..., help="agent id")
+B = typer.Argument(..., help="agent id")
+N = typer.Argument(..., help="agent id")
+
+
+@inject_app.command("cut")
+def inject_cut(a: int = A, b: int = B, forward: bool = typer.Option(False, "--forward", help="only frames from A to B"),
+               duration: Optional[float] = ForOpt, swarm: str = SwarmOpt, connect: Optional[list[str]] = ConnectOpt):
+    """Cut the radio link A-B (both directions unless --forward)."""
+    inject({"action": "cut", "link": [a, b], "direction": "forward" if forward else "both"}, swarm, connect, duration)
+
+
+@inject_app.command("restore")
+def inject_restore(a: int = A, b: int = B, swarm: str = SwarmOpt, connect: Optional[list[str]] = ConnectOpt):
+    """Restore the radio link A-B."""
+    inject({"action": "restore", "link": [a, b]}, swarm, connect, None)
+
+
+@inject_app.command("radio-off")
+def inject_radio_off(node: int = N, duration: Optional[float] = ForOpt, swarm: str = SwarmOpt,
+                     connect: Optional[list[str]] = ConnectOpt):
+    """Switch a node's radio off: it neither sends nor receives."""
+    inject({"action": "radio-off", "node": node}, swarm, connect, duration)
+
+
+@inject_app.command("radio-on")
+def inject_radio_on(node: int = N, swarm: str = SwarmOpt, connect: Optional[list[str]] = ConnectOpt):
+    """Switch a node's radio back on."""
+    inject({"action": "radio-on", "node": node}, swarm, connect, None)
+
+
+@inject_app.command("partition")
+def inject_partition(groups: list[str] = typer.Argument(..., help="groups of ids, e.g. 1,2 3,4 (unlisted agents: one more group)"),
+                     duration: Optional[float] = ForOpt, swarm: str = SwarmOpt, connect: Optional[list[str]] = ConnectOpt):
+    """Partition the swarm into groups that cannot hear each other."""
+    inject({"action": "partition", "groups": [_ids(g) for g in groups]}, swarm, connect, duration)
+
+
+@inject_app.command("heal")
+def inject_heal(swarm: str = SwarmOpt, connect: Optional[list[str]] = ConnectOpt):
+    """Heal a partition."""
+    inject({"action": "heal"}, swarm, connect, None)
+
+
+def _loss_target(node: int | None, link: str | None) -> dict:
+    if node is not None and link is not None:
+        raise fail("give --node or --link, not both")
+    if link is not None:
+        ids = _ids(link)
+        if len(ids) != 2:
+            raise fail(f"--link takes two ids like 1,2, got {link!r}")
+        return {"link": ids}
+    return {"node": node} if node is not None else {}
+
+
+@inject_app.command("loss")
+def inject_loss(probability: float = typer.Argument(..., help="extra loss probability per frame, 0..1"),
+                node: Optional[int] = typer.Option(None, "--node", help="only frames sent or received by this agent"),
+                link: Optional[str] = typer.Option(None, "--link", help="only frames on this link, e.g. 1,2"),
+                duration: Optional[float] = ForOpt, swarm: str = SwarmOpt, connect: Optional[list[str]] = ConnectOpt):
+    """Add random frame loss everywhere, on one node, or on one link."""
+    inject({"action": "loss", "probability": probability, **_loss_target(node, link)}, swarm, connect, duration)
+
+
+@inject_app.command("clear-loss")
+def inject_clear_loss(node: Optional[int] = typer.Option(None, "--node"), link: Optional[str] = typer.Option(None, "--link"),
+                      swarm: str = SwarmOpt, connect: Optional[list[str]] = ConnectOpt):
+    """Remove extra loss added with the same target."""
+    inject({"action": "clear-loss", **_loss_target(node, link)}, swarm, connect, None)
+
+
+@inject_app.command("jammer")
+def inject_jammer(x: float = typer.Argument(..., help="position x (m)"), y: float = typer.Argument(..., help="position y (m)"),
+                  power: float = typer.Option(30.0, "--power", help="dBm"),
+                  band: Optional[float] = typer.Option(None, "--band", help="jammed bandwidth (Hz); default the whole channel"),
+                  velocity: str = typer.Option("0,0", "--velocity", help="vx,vy in m/s for a moving jammer"),
+                  radius: float = typer.Option(50.0, "--radius", help="unit-disk radio: receivers within this many m are silenced"),
+                  name: str = typer.Option("j1", "--name"),
+                  duration: Optional[float] = ForOpt, swarm: str = SwarmOpt, connect: Optional[list[str]] = ConnectOpt):
+    """Switch a jammer on at (X, Y)."""
+    try:
+        vel = [float(v) for v in velocity.split(",")]
+    except ValueError:
+        raise fail(f"--velocity takes vx,vy, got {velocity!r}")
+    inject({"action": "jammer", "name": name, "position": [x, y], "power_dbm": power, "band_hz": band,
+            "velocity": vel, "radius_m": radius}, swarm, connect, duration)
+
+
+@inject_app.command("jammer-off")
+def inject_jammer_off(name: str = typer.Option("j1", "--name"), swarm: str = SwarmOpt, connect: Optional[list[str]] = ConnectOpt):
+    """Switch a jammer off."""
+    inject({"action": "jammer-off", "name": name}, swarm, connect, None)
+
+
+@inject_app.command("gnss-off")
+def inject_gnss_off(node: int = N, duration: Optional[float] = ForOpt, swarm: str = SwarmOpt,
+                    connect: Optional[list[str]] = ConnectOpt):
+    """GNSS outage on a node: its fixes stop."""
+    inject({"action": "gnss-off", "node": node}, swarm, connect, duration)
+
+
+@inject_app.command("gnss-on")
+def inject_gnss_on(node: int = N, swarm: str = SwarmOpt, connect: Optional[list[str]] = ConnectOpt):
+    """End a GNSS outage."""
+    inject({"action": "gnss-on", "node": node}, swarm, connect, None)
+
+
+@inject_app.command("kill")
+def inject_kill(node: int = N, duration: Optional[float] = ForOpt, swarm: str = SwarmOpt,
+                connect: Optional[list[str]] = ConnectOpt):
+    """Kill an agent process (with --for, `swarmloc run` restarts it afterwards)."""
+    inject({"action": "kill", "node": node}, swarm, connect, duration)
+
+
+@inject_app.command("restart")
+def inject_restart(node: int = N, swarm: str = SwarmOpt, connect: Optional[list[str]] = ConnectOpt):
+    """Restart a killed agent process."""
+    inject({"action": "restart", "node": node}, swarm, connect, None)
+
+
+@app.command()
+def clear(fault_id: int = typer.Argument(..., help="fault id from `swarmloc faults`"), swarm: str = SwarmOpt,
+          connect: Optional[list[str]] = ConnectOpt):
+    """Clear an active fault by its id."""
+    data = control("clear", {"id": fault_id}, swarm, connect)
+    console.print(f"fault {fault_id} clears from tick {data['applies_at_tick']}")
+
+
+@app.command()
+def faults(swarm: str = SwarmOpt, connect: Optional[list[str]] = ConnectOpt,
+           as_json: bool = typer.Option(False, "--json")):
+    """List the faults in force in a running swarm."""
+    data = control("faults", {}, swarm, connect)
+    if as_json:
+        print(json.dumps(data))
+        return
+    if not data["active"]:
+        console.print(f"no active faults (t = {data['t']:.1f} s)")
+        return
+    t = Table("id", "fault", "arguments", "since (s)", "until (s)")
+    for f in data["active"]:
+        t.add_row(str(f["id"]), f["action"], json.dumps(f["args"]), f"{f['since']:.1f}",
+                  "-" if f["until"] is None else f"{f['until']:.1f}")
+    console.print(t)
+
+
+def _status_view(s: dict):
+    from rich.console import Group
+
+    head = f"scenario {s['scenario']} ({s['mode']}, {s['radio']} radio): tick {s['k']}/{s['steps']}, t = {s['t']:.1f} s"
+    agents = Table("agent", "alive", "responsive", "last tick done", title="agents")
+    for aid, a in s["agents"].items():
+        agents.add_row(aid, "yes" if a["alive"] else "[red]no[/]", "yes" if a["responsive"] else "[red]no[/]", str(a["done_k"]))
+    links = Table("link", "up", "distance (m)", "SNR (dB)", "model PDR", "delivered", "dropped", "delivery ratio",
+                  "last heard (s)", title="links")
+    for l in s["links"]:
+        fmt = lambda v, f="{:.2f}": "-" if v is None or v != v else f.format(v)
+        links.add_row(f"{l['a']}-{l['b']}", "up" if l["up"] else f"[red]down ({l['reason']})[/]", f"{l['distance']:.1f}",
+                      fmt(l["snr_db"], "{:.1f}"), fmt(l["pdr_model"]), str(l["delivered"]), str(l["dropped"]),
+                      fmt(l["delivery_ratio"]), fmt(l["last_heard"], "{:.1f}"))
+    active = ", ".join(f"#{f['id']} {f['action']} {json.dumps(f['args'])}" for f in s["faults"]) or "none"
+    return Group(head, agents, links, f"faults: {active}")
 
 
 @app.command()
 def status(swarm: str = SwarmOpt, connect: Optional[list[str]] = ConnectOpt,
-           as_json: bool = typer.Option(False, "--json", help="print the raw status as JSON")):
-    """Show a running swarm: tick, agents alive, link table."""
-    s = control("status", {}, swarm, connect)
-    if as_json:
-        print(json.dumps(s))
+           as_json: bool = typer.Option(False, "--json", help="print the raw status as JSON"),
+           watch: bool = typer.Option(False, "--watch", "-w", help="refresh until Ctrl-C or the run ends"),
+           interval: float = typer.Option(0.5, "--interval", help="seconds between refreshes with --watch")):
+    """Show a running swarm: tick, agents alive, link table (SNR, delivery ratio, last heard), faults."""
+    if not watch:
+        s = control("status", {}, swarm, connect)
+        if as_json:
+            print(json.dumps(s))
+        else:
+            console.print(_status_view(s))
         return
-    console.print(f"scenario {s['scenario']} ({s['mode']}): tick {s['k']}/{s['steps']}, t = {s['t']:.1f} s")
-    t = Table("agent", "alive", "responsive", "last tick done")
-    for aid, a in s["agents"].items():
-        t.add_row(aid, "yes" if a["alive"] else "[red]no[/]", "yes" if a["responsive"] else "[red]no[/]", str(a["done_k"]))
-    console.print(t)
-    t = Table("link", "up", "distance (m)", "reason", "delivered", "dropped")
-    for l in s["links"]:
-        t.add_row(f"{l['a']}-{l['b']}", "up" if l["up"] else "[red]down[/]", f"{l['distance']:.1f}", l["reason"],
-                  str(l["delivered"]), str(l["dropped"]))
-    console.print(t)
+    from rich.live import Live
+
+    with Live(console=console, refresh_per_second=4) as live:
+        try:
+            while True:
+                live.update(_status_view(control("status", {}, swarm, connect)))
+                time.sleep(interval)
+        except KeyboardInterrupt:
+            pass
 
 
 def main():

@@ -47,6 +47,9 @@ def main(argv=None) -> int:
                        join_timeout=a.join_timeout, tick_timeout=a.tick_timeout, plots=not a.no_plots)
     try:
         m = NetsimServer(sc, cfg).run()
+    except scenarios.ScenarioError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     except SetupError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 3

@@ -1,9 +1,14 @@
 """The netsim process: owns the clock, the world and the radio; routes every frame.
 
-Lockstep: publish tick k and every agent's sensor frame, then route radio frames until the
-swarm is quiet, i.e. for every live agent its last `done` says it handled tick k, consumed
-every frame netsim delivered to it and sent nothing netsim has not yet received. Nothing
-else is trusted about ordering across keys.
+Lockstep (default): publish tick k and every agent's sensor frame, then run radio rounds.
+A round ends when the swarm is quiet: for every live agent its last `done` says it handled
+tick k, consumed every frame netsim delivered to it and sent nothing netsim has not yet
+received. Then the frames collected in the round go through the radio together
+(Simulation.exchange) and are delivered; the tick ends when a round sends nothing. Nothing
+else is trusted about ordering across keys, so the run is deterministic for a seed.
+
+Real time: the clock runs at wall speed times `clock.speed`; frames enter the radio when
+they arrive and are delivered when their modelled time comes; nobody waits for anybody.
 
 As in the agent daemon, Zenoh callbacks only enqueue; one loop does the work.
 """
@@ -22,9 +27,10 @@ import zenoh
 
 from netsim.sim import Simulation
 from swarmloc import wire
-from swarmloc.messages import Clock, Control, Done, EstimateMsg, LinkMsg, LinkNack, Links, Reply, Truth
-from swarmloc.node import Estimate
-from swarmloc.results import RunRecord, compute_references, write_run
+from swarmloc.faults import FaultError, inverse_of, nodes_named, parse_fault
+from swarmloc.messages import Clock, Control, Done, EstimateMsg, Event, LinkMsg, Links, Reply, Truth
+from swarmloc.node import Estimate, RadioRx, RadioTx
+from swarmloc.results import RunRecord, compute_references, metrics, write_run
 from swarmloc.scenario import Scenario
 
 log = logging.getLogger("swarmloc.netsim")
@@ -52,18 +58,25 @@ class NetsimServer:
         self.sc, self.cfg = scenario, cfg
         self.sim = Simulation(scenario, cfg.seed)
         self.ids = self.sim.ids
+        self.mode = scenario.clock.mode
+        # Frames only need to wait for a round when they can interfere with each other.
+        self.rounds = self.sim.channel.models_interference
         self.keys = wire.Keys(cfg.swarm)
         self.q: queue.SimpleQueue = queue.SimpleQueue()
         self.alive: set[int] = set()
         self.unresponsive: set[int] = set()
+        self.joined_at = {a: 0 for a in self.ids}  # first tick an agent must acknowledge
         self.done: dict[int, Done] = {}
-        self.delivered = {a: 0 for a in self.ids}  # frames put on radio/rx/<a>
-        self.received = {a: 0 for a in self.ids}  # frames taken from radio/tx/<a>
+        self.delivered = {a: 0 for a in self.ids}  # frames put on radio/rx/<a> since it (re)joined
+        self.received = {a: 0 for a in self.ids}  # frames taken from radio/tx/<a> since it (re)joined
         self.invalid_tx = 0
-        self.pending_faults: list[tuple[str, list[int]]] = []
+        self.round: list[RadioTx] = []
+        self.pending_faults: list = []
         self.record = RunRecord(self.ids, len(scenario.agent(self.ids[0]).start))
         self.seq = 0
-        self.hop_latency: list[float] = []  # wall seconds from tx arrival to rx publish
+        self.sent_at: dict[tuple[int, int], float] = {}  # (src, seq) -> sender's send time
+        self.hop_latency: list[float] = []  # wall s from tx arrival at netsim to rx publish
+        self.t0 = 0.0
 
     # ---------------------------------------------------------------- zenoh plumbing
 
@@ -84,6 +97,7 @@ class NetsimServer:
         self._ctl = self.session.declare_queryable(k.control, lambda q: put(("ctl", "", q, None)))
         self.pub_clock = self.session.declare_publisher(k.clock, **block)
         self.pub_links = self.session.declare_publisher(k.links, **block)
+        self.pub_events = self.session.declare_publisher(k.events, **block)
         self.pub_sensors = {a: self.session.declare_publisher(k.sensors(a), **block) for a in self.ids}
         self.pub_truth = {a: self.session.declare_publisher(k.truth(a), **block) for a in self.ids}
         self.pub_rx = {a: self.session.declare_publisher(k.radio_rx(a), **block) for a in self.ids}
@@ -100,7 +114,7 @@ class NetsimServer:
     def _handle(self, item) -> None:
         kind, key, payload, stamp = item
         if kind == "tx":
-            self._route(key, payload, stamp)
+            self._on_tx(key, payload, stamp)
         elif kind == "done":
             try:
                 env = wire.decode(payload, expect=(Done,))
@@ -122,18 +136,27 @@ class NetsimServer:
             if aid in self.delivered:
                 self.record.add_estimate(e.algorithm, aid, Estimate(e.k, e.mean, e.cov))
         elif kind == "alive":
-            aid = wire.Keys.agent_of(key)
-            if payload == zenoh.SampleKind.PUT:
-                self.alive.add(aid)
-            else:
-                self.alive.discard(aid)
-                log.warning("agent %s left the swarm", aid)
+            self._on_alive(wire.Keys.agent_of(key), payload == zenoh.SampleKind.PUT)
         elif kind == "ctl":
             self._control(payload)
 
-    def _route(self, key: str, payload: bytes, stamp) -> None:
+    def _on_alive(self, aid: int, up: bool) -> None:
+        if aid not in self.delivered:
+            return
+        if up:
+            # A (re)joining agent starts counting from zero and is waited for from the next tick.
+            self.alive.add(aid)
+            self.delivered[aid] = self.received[aid] = 0
+            self.done.pop(aid, None)
+            self.joined_at[aid] = self.sim.k + 1
+            if self.sim.k >= 0:
+                log.warning("agent %s joined at tick %d", aid, self.sim.k)
+        else:
+            self.alive.discard(aid)
+            log.warning("agent %s left the swarm at tick %d", aid, self.sim.k)
+
+    def _on_tx(self, key: str, payload: bytes, stamp) -> None:
         arrived, attachment = stamp
-        sent = wire.decode_send_time(attachment.to_bytes() if attachment is not None else None)
         try:
             src = wire.Keys.agent_of(key)
         except ValueError:
@@ -142,22 +165,44 @@ class NetsimServer:
             return
         self.received[src] += 1
         try:
-            env = wire.decode(payload)
+            env = wire.decode(payload, body=False)  # receivers validate the body themselves
         except wire.WireError as exc:
             self.invalid_tx += 1
             log.warning("agent %s sent an invalid frame: %s", src, exc)
             return
-        receivers = self.sim.route(src, env.dst, len(payload), self.sim.t)
-        for r, _t in receivers:
-            self._deliver(r, payload, sent)
-        if env.dst is not None and not receivers:
-            self.seq += 1
-            self._deliver(src, wire.encode(LinkNack(env.seq, env.dst, "unreachable"), NETSIM_ID, self.seq))
-        self.hop_latency.append(time.perf_counter() - arrived)
+        if env.src != src:
+            self.invalid_tx += 1
+            log.warning("frame on %s claims sender %s", key, env.src)
+            return
+        sent = wire.decode_send_time(attachment.to_bytes() if attachment is not None else None)
+        self.sent_at[(src, env.seq)] = sent if sent is not None else float("nan")
+        tx = RadioTx(src, env.dst, env.seq, payload)
+        if self.mode == "realtime":
+            self._deliver_all(self.sim.offer(tx, self._now()), arrived)
+        elif self.rounds:
+            self.round.append(tx)
+        else:
+            self._deliver_all(self.sim.exchange([tx]), arrived)
 
-    def _deliver(self, r: int, payload: bytes, sent: float | None = None) -> None:
+    def _deliver_all(self, rxs: list[RadioRx], arrived: float | None = None) -> None:
+        for rx in rxs:
+            self._deliver(rx)
+        if arrived is not None and rxs:
+            self.hop_latency.append(time.perf_counter() - arrived)
+
+    def _deliver(self, rx: RadioRx) -> None:
+        r = rx.receiver
+        if r not in self.alive:
+            return  # a dead agent hears nothing; it is not counted either
+        if rx.nack is not None:
+            self.seq += 1
+            data, sent = wire.encode(rx.nack, NETSIM_ID, self.seq), None
+        else:
+            data, sent = rx.data, self.sent_at.get((rx.src, rx.seq))
         self.delivered[r] += 1
-        self.pub_rx[r].put(payload, attachment=wire.encode_delivery(self.delivered[r], sent))
+        self.pub_rx[r].put(data, attachment=wire.encode_delivery(self.delivered[r], sent if sent == sent else None))
+
+    # ---------------------------------------------------------------- control
 
     def _control(self, query) -> None:
         def reply(ok: bool, error: str = "", data: dict | None = None):
@@ -176,28 +221,39 @@ class NetsimServer:
             reply(False, f"{req.op} failed: {exc}")
 
     def _control_op(self, req, reply) -> None:
-        if req.op in ("cut", "restore"):
-            link = req.args.get("link")
-            if not (isinstance(link, list) and len(link) == 2 and all(isinstance(x, int) for x in link)):
-                return reply(False, "args.link must be two agent ids")
-            a, b = link
-            if a not in self.ids or b not in self.ids or a == b:
-                return reply(False, f"no link {a}-{b}: agents are {self.ids}")
-            self.pending_faults.append((req.op, link))
+        if req.op == "inject":
+            try:
+                f = parse_fault(req.args.get("fault"))
+            except FaultError as exc:
+                return reply(False, f"bad fault: {exc}")
+            unknown = [a for a in nodes_named(f) if a not in self.ids]
+            if unknown:
+                return reply(False, f"{f.action}: unknown agents {unknown}; agents are {self.ids}")
+            self.pending_faults.append(f)
+            return reply(True, "", {"applies_at_tick": self.sim.k + 1, "fault": f.model_dump(mode="json", exclude_none=True)})
+        if req.op == "clear":
+            fid = req.args.get("id")
+            match = [a for a in self.sim.faults.active if a.id == fid]
+            if not match:
+                return reply(False, f"no active fault {fid!r}; active: {[a.id for a in self.sim.faults.active]}")
+            self.pending_faults.append(inverse_of(match[0].fault))
             return reply(True, "", {"applies_at_tick": self.sim.k + 1})
+        if req.op == "faults":
+            return reply(True, "", {"k": self.sim.k, "t": self.sim.t, "active": self.sim.faults.describe()})
         if req.op == "status":
             return reply(True, "", self.status())
-        return reply(False, f"unknown op {req.op!r} (cut, restore, status)")
+        return reply(False, f"unknown op {req.op!r} (inject, clear, faults, status)")
 
     def status(self) -> dict:
         return {
-            "scenario": self.sc.name, "mode": self.sc.clock.mode, "k": self.sim.k, "t": self.sim.t,
-            "steps": self.sim.steps, "agents": {str(a): {"alive": a in self.alive, "responsive": a not in self.unresponsive,
-                                                         "done_k": self.done[a].k if a in self.done else -1} for a in self.ids},
-            "links": self.sim.link_table(), "cut": sorted(sorted(p) for p in self.sim.cut),
+            "scenario": self.sc.name, "mode": self.mode, "k": self.sim.k, "t": self.sim.t,
+            "steps": self.sim.steps, "radio": self.sc.radio["model"],
+            "agents": {str(a): {"alive": a in self.alive, "responsive": a not in self.unresponsive,
+                                "done_k": self.done[a].k if a in self.done else -1} for a in self.ids},
+            "links": self.sim.link_table(), "faults": self.sim.faults.describe(),
         }
 
-    # ---------------------------------------------------------------- lockstep
+    # ---------------------------------------------------------------- the loop
 
     def _pump(self, until: Callable[[], bool], timeout: float) -> bool:
         deadline = time.monotonic() + timeout
@@ -210,22 +266,24 @@ class NetsimServer:
             except queue.Empty:
                 return until()
             self._handle(item)
-            # Drain whatever else is already queued before testing the condition again.
-            while True:
+            while True:  # drain what is already queued before testing the condition again
                 try:
                     self._handle(self.q.get_nowait())
                 except queue.Empty:
                     break
         return True
 
+    def _waited_for(self) -> list[int]:
+        killed = self.sim.faults.killed()
+        return [a for a in self.ids if a in self.alive and a not in self.unresponsive and a not in killed
+                and self.joined_at[a] <= self.sim.k]
+
+    def _quiet_agent(self, a: int, k: int) -> bool:
+        d = self.done.get(a)
+        return d is not None and d.k >= k and d.consumed == self.delivered[a] and d.sent == self.received[a]
+
     def _quiet(self, k: int) -> bool:
-        for a in self.ids:
-            if a in self.unresponsive:
-                continue
-            d = self.done.get(a)
-            if d is None or d.k < k or d.consumed != self.delivered[a] or d.sent != self.received[a]:
-                return False
-        return True
+        return all(self._quiet_agent(a, k) for a in self._waited_for())
 
     def wait_for_agents(self) -> None:
         if not self._pump(lambda: self.alive >= set(self.ids), self.cfg.join_timeout):
@@ -236,41 +294,83 @@ class NetsimServer:
         self.open()
         try:
             self.wait_for_agents()
-            t0 = time.perf_counter()
+            self.t0 = time.perf_counter()
             for _ in range(self.sim.steps + 1):
-                self._tick()
-            wall = time.perf_counter() - t0
+                if self.mode == "lockstep":
+                    self._lockstep_tick()
+                else:
+                    self._realtime_tick()
+            wall = time.perf_counter() - self.t0
             agent_stats = self.agent_stats()
             self._put(self.pub_clock, Clock(self.sim.k, self.sim.t, "stop", self.sc.clock.dt))
             return self._finish(wall, agent_stats)
         finally:
             self.close()
 
-    def _tick(self) -> None:
+    def _start_tick(self) -> int:
+        before = self.sim.faults.killed()
         k, t, frames = self.sim.tick(self.pending_faults)
         self.pending_faults = []
-        self._put(self.pub_clock, Clock(k, t, "lockstep", self.sc.clock.dt))
+        after = self.sim.faults.killed()
+        for a in sorted(after - before):
+            self._put(self.pub_events, Event("kill", a, t))
+        for a in sorted(before - after):
+            self._put(self.pub_events, Event("restart", a, t))
+        self._put(self.pub_clock, Clock(k, t, self.mode, self.sc.clock.dt))
         truth = self.sim.truth()
         for a in self.ids:
             self._put(self.pub_truth[a], Truth(k, t, truth[a]))
-            self._put(self.pub_sensors[a], frames[a])
-        while not self._pump(lambda: self._quiet(k), self.cfg.tick_timeout):
-            lagging = [a for a in self.ids if a not in self.unresponsive and not self._quiet_agent(a, k)]
-            log.error("tick %d: agents %s silent for %.0f s; going on without them", k, lagging, self.cfg.tick_timeout)
-            self.unresponsive.update(lagging)
+            if a in self.alive and a not in after:
+                self._put(self.pub_sensors[a], frames[a])
         self.record.add_tick(k, t, frames, truth)
-        if k % max(1, int(round(1.0 / self.sc.clock.dt))) == 0 or self.pending_faults:
+        return k
+
+    def _end_tick(self, k: int) -> None:
+        if k % max(1, int(round(1.0 / self.sc.clock.dt))) == 0:
             self._put(self.pub_links, Links(k, [LinkMsg(**row) for row in self.sim.link_table()]))
         if self.cfg.on_tick:
             self.cfg.on_tick(k, self.sim.steps)
 
-    def _quiet_agent(self, a: int, k: int) -> bool:
-        d = self.done.get(a)
-        return d is not None and d.k >= k and d.consumed == self.delivered[a] and d.sent == self.received[a]
+    def _lockstep_tick(self) -> None:
+        k = self._start_tick()
+        while True:
+            while not self._pump(lambda: self._quiet(k), self.cfg.tick_timeout):
+                lagging = [a for a in self._waited_for() if not self._quiet_agent(a, k)]
+                log.error("tick %d: agents %s silent for %.0f s; going on without them", k, lagging, self.cfg.tick_timeout)
+                self.unresponsive.update(lagging)
+            if not self.round:
+                break
+            batch, self.round = self.round, []
+            started = time.perf_counter()
+            self._deliver_all(self.sim.exchange(batch), started)
+        self._end_tick(k)
+
+    def _now(self) -> float:
+        """Simulated time now (real-time mode)."""
+        return (time.perf_counter() - self.t0) * self.sc.clock.speed
+
+    def _realtime_tick(self) -> None:
+        k = self._start_tick()
+        t_next = (k + 1) * self.sc.clock.dt
+        while True:
+            now = self._now()
+            self._deliver_all(self.sim.advance(now))
+            if now >= t_next or k == self.sim.steps:
+                break
+            event = self.sim.next_event_time()
+            wake = min(t_next, event if event is not None else t_next)
+            self._pump(lambda: False, max(0.0, (wake - now) / self.sc.clock.speed))
+        if k == self.sim.steps:  # let the last tick's frames land before stopping
+            self._pump(lambda: False, 0.2)
+            self._deliver_all(self.sim.advance(float("inf")))
+        self._end_tick(k)
+
+    # ---------------------------------------------------------------- the end
 
     def agent_stats(self, timeout: float = 2.0) -> dict:
         """Each live agent's own counters (drops by reason, hop latency), via its stats queryable."""
         out = {}
+        expected = len(self.alive)
         for r in self.session.get(self.keys.stats("*"), timeout=timeout):
             if r.ok is None:
                 continue
@@ -278,6 +378,8 @@ class NetsimServer:
                 out[str(wire.Keys.agent_of(str(r.ok.key_expr)))] = wire.decode(r.ok.payload.to_bytes(), expect=(Reply,)).body.data
             except (wire.WireError, ValueError) as exc:
                 log.warning("bad stats reply: %s", exc)
+            if len(out) >= expected:
+                break  # do not sit out the timeout once everyone has answered
         return out
 
     def _finish(self, wall: float, agent_stats: dict) -> dict:
@@ -286,10 +388,10 @@ class NetsimServer:
         compute_references(self.sc, self.record, [a for a in ("il", "ukf-ccl") if a in self.sc.estimators])
         lat = np.array(self.hop_latency) * 1e6
         extra = {
-            "transport": "zenoh-lockstep",
+            "transport": f"zenoh-{self.mode}",
             "wall_time_s": wall,
             "ticks_per_s": (self.sim.steps + 1) / wall if wall > 0 else None,
-            "radio": {**self.sim.radio_summary(), "invalid_tx": self.invalid_tx,
+            "radio": {"model": self.sc.radio["model"], **self.sim.radio_summary(), "invalid_tx": self.invalid_tx,
                       "netsim_hop_us_median": float(np.median(lat)) if lat.size else None,
                       "netsim_hop_us_p99": float(np.percentile(lat, 99)) if lat.size else None},
             "faults": self.sim.fault_log,
@@ -298,9 +400,8 @@ class NetsimServer:
         }
         algorithms = [a for a in ("il", "ukf-dcl", "ukf-ccl") if a in self.sc.estimators or a in self.record.est]
         if self.cfg.out is None:
-            from swarmloc.results import metrics
-
             return {**metrics(self.record, algorithms), **extra}
-        m = write_run(self.cfg.out, self.sc, self.record, algorithms, extra, plots=self.cfg.plots)
-        np.savez(Path(self.cfg.out) / "radio.npz", **self.sim.radio_arrays())
+        m = write_run(self.cfg.out, self.sc, self.record, algorithms, extra, plots=self.cfg.plots,
+                      radio=self.sim.radio_arrays())
         return m
+

@@ -12,12 +12,12 @@ import math
 
 import numpy as np
 
-from swarmloc.messages import OdometryMsg, RangeMsg, Sensors
+from swarmloc.messages import GnssMsg, OdometryMsg, RangeMsg, Sensors
 from swarmloc.scenario import CircleMotion, Scenario
 
 
 def streams(seed: int) -> dict[str, np.random.Generator]:
-    names = ("motion", "odometry", "range", "radio")
+    names = ("motion", "odometry", "range", "radio", "loss", "gnss")
     children = np.random.SeedSequence(seed).spawn(len(names))
     return {n: np.random.default_rng(c) for n, c in zip(names, children)}
 
@@ -48,8 +48,10 @@ class World:
     def positions(self) -> dict[int, np.ndarray]:
         return {a: p.copy() for a, p in self.pos.items()}
 
-    def step(self) -> dict[int, Sensors]:
-        """Advance to the next tick; return every agent's sensor frame for it."""
+    def step(self, gnss_ok=lambda a: True) -> dict[int, Sensors]:
+        """Advance to the next tick; return every agent's sensor frame for it.
+
+        gnss_ok(a) False means agent a's GNSS is out (a fault): its frame carries no fix."""
         self.k += 1
         if self.k == 0:
             return {a: self._frame(a, OdometryMsg(0.0, 0.0, self.heading_est[a], 0.0, 0.0), []) for a in self.ids}
@@ -72,10 +74,18 @@ class World:
                 decay = math.exp(-self.dt / m.turn_rate_tau)
                 self.turn[a] = decay * self.turn[a] + m.turn_rate_std * math.sqrt(1 - decay**2) * self.rng["motion"].normal()
         ranges = self._ranges()
-        return {a: self._frame(a, odometry[a], ranges.get(a, [])) for a in self.ids}
+        gnss = self._gnss(gnss_ok)
+        return {a: Sensors(self.k, self.t, odometry[a], ranges.get(a, []), gnss.get(a)) for a in self.ids}
 
     def _frame(self, a, odo, ranges) -> Sensors:
         return Sensors(self.k, self.t, odo, ranges)
+
+    def _gnss(self, gnss_ok) -> dict[int, GnssMsg]:
+        cfg = self.sc.sensors.gnss
+        if not cfg.enabled:
+            return {}
+        noise = {a: self.rng["gnss"].normal(0.0, cfg.noise, size=2) for a in self.ids}  # drawn even in outage
+        return {a: GnssMsg(self.pos[a] + noise[a], cfg.noise) for a in self.ids if gnss_ok(a)}
 
     def _ranges(self) -> dict[int, list[RangeMsg]]:
         """Up to max_per_step measurements among distinct ordered pairs within sensing range."""

@@ -10,7 +10,7 @@ from typing import Annotated
 
 import numpy as np
 
-from swarmloc.wire import MAX_ID, Array, Bool, Float, Int, ListOf, MapOf, Nested, Plain, Str, message
+from swarmloc.wire import MAX_ID, Array, Bool, Float, Int, ListOf, MapOf, Nested, Optional, Plain, Str, message
 
 Id = Annotated[int, Int(0, MAX_ID)]
 Tick = Annotated[int, Int(0, 2**40)]
@@ -49,14 +49,24 @@ class RangeMsg:
     std: Annotated[float, Float(lo=0.0)]
 
 
+@message("gnss")
+class GnssMsg:
+    """A GNSS position fix: position (m, swarm frame) with per-axis std."""
+
+    position: Vec
+    std: Annotated[float, Float(lo=0.0)]
+
+
 @message("sensors")
 class Sensors:
-    """One agent's sensor frame for tick k; relative measurements in the order they were taken."""
+    """One agent's sensor frame for tick k; relative measurements in the order they were taken.
+    gnss is None when the platform has no fix (no receiver, or an outage)."""
 
     k: Tick
     t: Annotated[float, Float()]
     odometry: Annotated[OdometryMsg, Nested(OdometryMsg)]
     ranges: Annotated[list, ListOf(Nested(RangeMsg), max_len=64)]
+    gnss: Annotated[GnssMsg | None, Optional(Nested(GnssMsg))] = None
 
 
 @message("truth")
@@ -188,7 +198,7 @@ class LinkNack:
 
 @message("control")
 class Control:
-    """Request to netsim/control: op is one of cut, restore, status (docs/wire.md)."""
+    """Request to netsim/control: op is one of inject, clear, faults, status (docs/wire.md)."""
 
     op: Annotated[str, Str(32)]
     args: Annotated[dict, Plain()]
@@ -201,15 +211,31 @@ class Reply:
     data: Annotated[dict, Plain()]
 
 
+@message("event")
+class Event:
+    """netsim -> launcher: something the launcher must do to the processes (kill, restart)."""
+
+    kind: Annotated[str, Str(16)]
+    node: Id
+    t: Annotated[float, Float()]
+
+
 @message("link")
 class LinkMsg:
+    """One pair's link as netsim sees it: physics (SNR without interference, modelled delivery
+    ratio), faults (up, reason) and what actually happened (counts, last frame heard)."""
+
     a: Id
     b: Id
     up: Annotated[bool, Bool()]
     distance: Annotated[float, Float(finite=False)]
     reason: Annotated[str, Str(32)]
+    snr_db: Annotated[float, Float(finite=False)]
+    pdr_model: Annotated[float, Float(finite=False)]
     delivered: Annotated[int, Int(0)]
     dropped: Annotated[int, Int(0)]
+    delivery_ratio: Annotated[float | None, Optional(Float())]
+    last_heard: Annotated[float | None, Optional(Float())]
 
 
 @message("links")

@@ -64,6 +64,23 @@ class Node:
         """Handle a radio message from `src`. Never raises on bad content: it counts a drop."""
         return []
 
+    def resume(self, k: int, x, P) -> None:
+        """Continue from a checkpoint (an agent restarted after a crash or a kill)."""
+        self.k, self.x, self.P = int(k), np.array(x, float), np.array(P, float)
+
+    def missed_motion(self, sensors: Sensors) -> np.ndarray | None:
+        """Covariance to add for ticks this node never saw (it was dead): how far it could have
+        gone, from the speed it reports now plus three standard deviations, in every direction."""
+        gap = sensors.k - self.k - 1
+        if self.k < 0 or gap <= 0:
+            return None
+        o = sensors.odometry
+        reach = gap * o.dt * (abs(o.speed) + 3.0 * o.speed_std)
+        cov = np.zeros((self.model.state_dim,) * 2)
+        p = self.model.position_dim
+        cov[:p, :p] = np.eye(p) * reach**2
+        return cov
+
     def link_failed(self, dst: int, msg: Any) -> list[Send]:
         """The radio reports that unicast `msg` never reached `dst`."""
         return []
@@ -77,6 +94,28 @@ class Node:
         return []
 
 
+@dataclass(frozen=True)
+class RadioTx:
+    """A frame as sent on the radio: sender, destination (None = broadcast), envelope seq, bytes."""
+
+    src: int
+    dst: int | None
+    seq: int
+    data: bytes
+
+
+@dataclass(frozen=True)
+class RadioRx:
+    """What the radio hands `receiver` at modelled time t: a frame's bytes, or a NACK for its sender."""
+
+    receiver: int
+    t: float
+    data: bytes | None = None
+    nack: LinkNack | None = None
+    src: int = -1  # the frame's sender (for a NACK: the radio)
+    seq: int = -1  # the frame's envelope seq
+
+
 class Outbox:
     """Numbers a node's frames and remembers recent unicasts, so a driver can hand a radio
     NACK back to the node as the message it refers to. Shared by every driver."""
@@ -86,13 +125,13 @@ class Outbox:
         self.seq = 0
         self.unicast: OrderedDict[int, Send] = OrderedDict()
 
-    def encode(self, send: Send) -> bytes:
+    def encode(self, send: Send) -> RadioTx:
         self.seq += 1
         if send.dst is not None:
             self.unicast[self.seq] = send
             if len(self.unicast) > self.keep:
                 self.unicast.popitem(last=False)
-        return wire.encode(send.msg, self.node_id, self.seq, send.dst)
+        return RadioTx(self.node_id, send.dst, self.seq, wire.encode(send.msg, self.node_id, self.seq, send.dst))
 
     def failed(self, nack: LinkNack) -> Send | None:
         send = self.unicast.pop(nack.seq, None)

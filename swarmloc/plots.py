@@ -62,3 +62,40 @@ def plot_run(out: Path, record, algorithms: list[str]) -> list[Path]:
     fig.savefig(paths[-1], dpi=110, bbox_inches="tight")
     plt.close(fig)
     return paths
+
+
+def plot_links(out: Path, radio: dict) -> Path:
+    """Link quality over time: modelled SNR, up/down, and delivery ratio per tick, faults marked."""
+    out = Path(out) / "plots"
+    out.mkdir(parents=True, exist_ok=True)
+    t, a, b = radio["link_t"], radio["link_a"], radio["link_b"]
+    pairs = sorted(set(zip(a.tolist(), b.tolist())))
+    fig, (ax_snr, ax_up, ax_pdr) = plt.subplots(3, 1, figsize=(9, 8), sharex=True)
+    rk, rs, rr, rd = radio["k"], radio["src"], radio["receiver"], radio["delivered"]
+    tick_t = {int(k): float(tt) for k, tt in zip(radio["link_k"], t)}
+    for i, (pa, pb) in enumerate(pairs):
+        sel = (a == pa) & (b == pb)
+        ax_snr.plot(t[sel], radio["link_snr_db"][sel], lw=0.8, label=f"{pa}-{pb}")
+        ax_up.plot(t[sel], radio["link_up"][sel] * 0.8 + i, lw=1.0)
+        pair = ((rs == pa) & (rr == pb)) | ((rs == pb) & (rr == pa))
+        if pair.any():
+            ks = np.unique(rk[pair])
+            ratio = [rd[pair & (rk == k)].mean() for k in ks]
+            ax_pdr.plot([tick_t.get(int(k), np.nan) for k in ks], ratio, ".", ms=2)
+    for ft, act in zip(radio["fault_t"], radio["fault_action"]):
+        for ax in (ax_snr, ax_up, ax_pdr):
+            ax.axvline(ft, color="k", lw=0.5, ls=":")
+        ax_snr.annotate(str(act), (ft, 1.0), xycoords=("data", "axes fraction"), rotation=90, fontsize=7, va="top")
+    ax_snr.set_ylabel("SNR without interference (dB)")
+    ax_up.set_ylabel("link up (one row per pair)")
+    ax_up.set_yticks(range(len(pairs)), [f"{pa}-{pb}" for pa, pb in pairs], fontsize=7)
+    ax_pdr.set_ylabel("delivered fraction per tick")
+    ax_pdr.set_xlabel("time (s)")
+    if len(pairs) <= 12:
+        ax_snr.legend(fontsize=7, ncol=4)
+    for ax in (ax_snr, ax_up, ax_pdr):
+        ax.grid(alpha=0.3)
+    path = out / "links.png"
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path

@@ -150,7 +150,7 @@ def metrics(record: RunRecord, algorithms: list[str]) -> dict:
 
 
 def write_run(out: Path, scenario, record: RunRecord, algorithms: list[str], extra: dict | None = None,
-              plots: bool = True) -> dict:
+              plots: bool = True, radio: dict[str, np.ndarray] | None = None) -> dict:
     """Write the run directory; returns the metrics written to metrics.json."""
     out = Path(out)
     (out / "estimates").mkdir(parents=True, exist_ok=True)
@@ -166,10 +166,14 @@ def write_run(out: Path, scenario, record: RunRecord, algorithms: list[str], ext
     m["seed"] = scenario.seed
     m.update(extra or {})
     (out / "metrics.json").write_text(json.dumps(m, indent=2, default=_jsonable))
+    if radio is not None:
+        np.savez(out / "radio.npz", **radio)
     if plots:
-        from swarmloc.plots import plot_run
+        from swarmloc.plots import plot_links, plot_run
 
         plot_run(out, record, algorithms)
+        if radio is not None and radio["link_k"].size:
+            plot_links(out, radio)
     return m
 
 

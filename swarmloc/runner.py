@@ -7,21 +7,22 @@ bit-for-bit what it would receive from the agent daemon.
 
 from __future__ import annotations
 
-import heapq
 import logging
 from typing import Callable, Iterable, Protocol
 
 import numpy as np
 
 from swarmloc import wire
-from swarmloc.messages import LinkNack, Sensors
-from swarmloc.node import Node, Outbox
+from swarmloc.messages import Sensors
+from swarmloc.node import Node, Outbox, RadioRx, RadioTx
 from swarmloc.results import RunRecord
 
 log = logging.getLogger(__name__)
 
 
 class Environment(Protocol):
+    """What the runner needs from a world (netsim.sim.Simulation is the one swarmloc ships)."""
+
     ids: list[int]
     steps: int
 
@@ -31,40 +32,33 @@ class Environment(Protocol):
     def truth(self) -> dict[int, np.ndarray]:
         """True states now."""
 
-    def route(self, src: int, dst: int | None, size: int, t: float) -> list[tuple[int, float]]:
-        """Receivers of a frame sent at time t, each with its arrival time; lost frames are absent."""
+    def exchange(self, frames: list) -> list:
+        """One lockstep round: frames (src, dst, seq, data) in, deliveries (receiver, t, data | nack) out."""
 
 
 class InProcessRunner:
-    def __init__(self, env: Environment, nodes: dict[int, Node], max_events_per_tick: int = 200_000):
+    """Lockstep in rounds, exactly as the netsim process runs it: every frame the nodes send in
+    reaction to one round of deliveries forms the next round."""
+
+    def __init__(self, env: Environment, nodes: dict[int, Node], max_rounds_per_tick: int = 10_000):
         self.env, self.nodes = env, nodes
-        self.max_events = max_events_per_tick
+        self.max_rounds = max_rounds_per_tick
         self.outbox = {a: Outbox(a) for a in nodes}
         self.frames = 0
 
-    def run(self, record: RunRecord | None = None, on_tick: Callable[[int, dict[int, Sensors]], None] | None = None) -> RunRecord:
+    def run(self, record: RunRecord | None = None,
+            on_tick: Callable[[int, dict[int, Sensors]], None] | None = None) -> RunRecord:
         record = record or RunRecord(sorted(self.nodes), next(iter(self.nodes.values())).model.state_dim)
         for _ in range(self.env.steps + 1):
             k, t, frames = self.env.tick()
-            queue: list = []
-            order = 0
-            for a in sorted(self.nodes):
-                for send in self.nodes[a].step(frames[a]):
-                    order = self._transmit(queue, a, send, t, order)
-            events = 0
-            while queue:
-                t_arr, _, dst, data = heapq.heappop(queue)
-                env = wire.decode(data)
-                if isinstance(env.body, LinkNack):
-                    failed = self.outbox[dst].failed(env.body)
-                    sends = self.nodes[dst].link_failed(failed.dst, failed.msg) if failed else []
-                else:
-                    sends = self.nodes[dst].receive(env.src, env.body)
-                for send in sends:
-                    order = self._transmit(queue, dst, send, t_arr, order)
-                events += 1
-                if events > self.max_events:
-                    raise RuntimeError(f"tick {k}: more than {self.max_events} radio events (livelock?)")
+            sent = [tx for a in sorted(self.nodes) for tx in self._encode(a, self.nodes[a].step(frames[a]))]
+            rounds = 0
+            while sent:
+                rounds += 1
+                if rounds > self.max_rounds:
+                    raise RuntimeError(f"tick {k}: more than {self.max_rounds} radio rounds (livelock?)")
+                sent = [tx for rx in self.env.exchange(sent) if rx.receiver in self.nodes
+                        for tx in self._encode(rx.receiver, self._deliver(rx))]
             record.add_tick(k, t, frames, self.env.truth())
             for a, node in self.nodes.items():
                 record.add_estimate(node.algorithm, a, node.estimate())
@@ -72,20 +66,17 @@ class InProcessRunner:
                 on_tick(k, frames)
         return record
 
-    def _transmit(self, queue, src, send, t, order) -> int:
-        outbox = self.outbox[src]
-        data = outbox.encode(send)
-        self.frames += 1
-        receivers = self.env.route(src, send.dst, len(data), t)
-        for receiver, t_arr in receivers:
-            if receiver in self.nodes:
-                heapq.heappush(queue, (t_arr, order, receiver, data))
-                order += 1
-        if send.dst is not None and not receivers:
-            nack = wire.encode(LinkNack(outbox.seq, send.dst, "unreachable"), 0, outbox.seq)
-            heapq.heappush(queue, (t, order, src, nack))
-            order += 1
-        return order
+    def _deliver(self, rx: RadioRx) -> list:
+        node = self.nodes[rx.receiver]
+        if rx.nack is not None:
+            failed = self.outbox[rx.receiver].failed(rx.nack)
+            return node.link_failed(failed.dst, failed.msg) if failed else []
+        env = wire.decode(rx.data)
+        return [] if env.src == rx.receiver else node.receive(env.src, env.body)
+
+    def _encode(self, src: int, sends) -> list[RadioTx]:
+        self.frames += len(sends)
+        return [self.outbox[src].encode(s) for s in sends]
 
 
 def make_nodes(algorithm: str, scenario, ids: Iterable[int] | None = None) -> dict[int, Node]:

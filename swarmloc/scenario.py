@@ -15,6 +15,7 @@ from typing import Annotated, Literal, Union
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from swarmloc.faults import ACTIONS, Fault, nodes_named
 from swarmloc.models import MOTION_MODELS
 
 SCENARIO_VERSION = 1
@@ -101,26 +102,23 @@ class RangeSensor(_Strict):
     max_range: float = Field(math.inf, gt=0, description="sensing range (m): pairs farther apart are never measured")
 
 
+class GnssSensor(_Strict):
+    enabled: bool = Field(False, description="publish a GNSS position fix every step")
+    noise: float = Field(2.0, gt=0, description="std of each horizontal coordinate (m)")
+
+
 class Sensors(_Strict):
     odometry: OdometrySensor = Field(default_factory=OdometrySensor)
     range: RangeSensor = Field(default_factory=RangeSensor)
+    gnss: GnssSensor = Field(default_factory=GnssSensor)
 
 
-class Radio(_Strict):
-    model: Literal["unit-disk"] = Field("unit-disk", description="channel model")
-    range: float = Field(math.inf, gt=0, description="unit disk: links up to this distance (m)")
-    latency: float = Field(0.0, ge=0, description="one-hop latency (s), modelled time")
+RADIO_MODELS = ("unit-disk", "log-distance")
 
 
 class Estimation(_Strict):
     initial_std: float = Field(0.1, gt=0, description="std of the known initial position (m)")
     spread: float = Field(3.0, gt=0, description="unscented transform spread n + lambda")
-
-
-class Fault(_Strict):
-    at: float = Field(ge=0, description="simulated time (s) the action happens")
-    action: Literal["cut", "restore"] = Field(description="cut or restore a link")
-    link: list[int] = Field(min_length=2, max_length=2, description="the two agent ids")
 
 
 ESTIMATORS = ("il", "ukf-dcl", "ukf-ccl")
@@ -134,10 +132,11 @@ class Scenario(_Strict):
     clock: Clock = Field(default_factory=Clock)
     world: World
     sensors: Sensors = Field(default_factory=Sensors)
-    radio: Radio = Field(default_factory=Radio)
+    radio: dict = Field(default_factory=lambda: {"model": "unit-disk"},
+                        description="channel model and its parameters (docs/radio.md); netsim validates the parameters")
     estimation: Estimation = Field(default_factory=Estimation)
     estimators: list[Literal["il", "ukf-dcl", "ukf-ccl"]] = Field(default_factory=lambda: list(ESTIMATORS))
-    faults: list[Fault] = Field(default_factory=list)
+    faults: list[Fault] = Field(default_factory=list, description="fault timeline: each fault with `at` (docs/faults.md)")
 
     @field_validator("version")
     @classmethod
@@ -146,15 +145,22 @@ class Scenario(_Strict):
             raise ValueError(f"unsupported version {v}; this swarmloc reads version {SCENARIO_VERSION}")
         return v
 
+    @field_validator("radio")
+    @classmethod
+    def _radio_model(cls, v):
+        if v.get("model") not in RADIO_MODELS:
+            raise ValueError(f"radio.model must be one of {list(RADIO_MODELS)}, got {v.get('model')!r}")
+        return v
+
     @model_validator(mode="after")
     def _faults_name_agents(self):
         ids = {a.id for a in self.world.agents}
         for i, f in enumerate(self.faults):
-            bad = [a for a in f.link if a not in ids]
+            if f.at is None:
+                raise ValueError(f"faults[{i}] needs `at` (simulated time in s)")
+            bad = [a for a in nodes_named(f) if a not in ids]
             if bad:
-                raise ValueError(f"faults[{i}].link names unknown agents {bad}")
-            if f.link[0] == f.link[1]:
-                raise ValueError(f"faults[{i}].link must name two different agents, got {f.link}")
+                raise ValueError(f"faults[{i}] ({f.action}) names unknown agents {bad}")
         return self
 
     @property
@@ -176,7 +182,14 @@ class Scenario(_Strict):
         return parse(data, source=f"{self.name} (overridden)")
 
     def to_yaml(self) -> str:
-        return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
+        def plain(v):  # python-mode dump keeps inf (json mode would turn the radio's inf to null)
+            if isinstance(v, dict):
+                return {k: plain(x) for k, x in v.items()}
+            if isinstance(v, (list, tuple)):
+                return [plain(x) for x in v]
+            return v
+
+        return yaml.safe_dump(plain(self.model_dump(exclude_none=False)), sort_keys=False)
 
 
 def parse(data, source: str = "<scenario>") -> Scenario:
@@ -187,7 +200,7 @@ def parse(data, source: str = "<scenario>") -> Scenario:
     except ValidationError as exc:
         lines = []
         for err in exc.errors():
-            loc = ".".join(str(p) for p in err["loc"] if not (isinstance(p, str) and p in ("circle", "random")))
+            loc = ".".join(str(p) for p in err["loc"] if not (isinstance(p, str) and (p in ("circle", "random") or p in ACTIONS)))
             lines.append(f"  {loc or '(top level)'}: {err['msg']}")
         raise ScenarioError(f"{source}: invalid scenario\n" + "\n".join(lines)) from None
 

@@ -272,8 +272,11 @@ def encode(msg, src: int, seq: int, dst: int | None = None) -> bytes:
     return msgpack.packb(env, use_bin_type=True)
 
 
-def decode(data: bytes, expect: tuple[type, ...] | None = None) -> Envelope:
-    """Validate and decode a frame; raises WireError naming the problem."""
+def decode(data: bytes, expect: tuple[type, ...] | None = None, body: bool = True) -> Envelope:
+    """Validate and decode a frame; raises WireError naming the problem.
+
+    body=False checks the envelope only and leaves the body as raw msgpack data: for a
+    router (netsim) that needs src, dst and seq but leaves the content to the receiver."""
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise WireError("payload is not bytes")
     if len(data) > MAX_FRAME_BYTES:
@@ -294,7 +297,7 @@ def decode(data: bytes, expect: tuple[type, ...] | None = None) -> Envelope:
     src = Int(0, MAX_ID).decode(env.get("src"), "src")
     seq = Int(0, 2**63 - 1).decode(env.get("seq"), "seq")
     dst = Optional(Int(0, MAX_ID)).decode(env.get("dst"), "dst")
-    return Envelope(cls.TYPE, src, seq, decode_body(cls, env["body"]), dst)
+    return Envelope(cls.TYPE, src, seq, decode_body(cls, env["body"]) if body else env["body"], dst)
 
 
 # --------------------------------------------------------------------------- key expressions
@@ -311,6 +314,7 @@ class Keys:
     clock = property(lambda self: f"{self.prefix}/clock")
     control = property(lambda self: f"{self.prefix}/netsim/control")
     links = property(lambda self: f"{self.prefix}/netsim/links")
+    events = property(lambda self: f"{self.prefix}/netsim/events")
 
     def sensors(self, aid: int | str) -> str:
         return f"{self.prefix}/agent/{aid}/sensors"

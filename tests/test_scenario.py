@@ -26,7 +26,7 @@ def base():
         (lambda d: d["clock"].update(dt=-1), "clock.dt"),
         (lambda d: d["world"]["agents"][2].update(start=[1.0]), "world.agents.2"),
         (lambda d: d["world"]["agents"][0].update(model="hovercraft"), "world.agents.0.model"),
-        (lambda d: d["radio"].update(rnage=10), "radio.rnage"),
+        (lambda d: d["radio"].update(model="carrier-pigeon"), "radio.model"),
         (lambda d: d.update(version=9), "version"),
         (lambda d: d.update(faults=[{"at": 1, "action": "cut", "link": [1, 99]}]), "unknown agents"),
         (lambda d: d["world"]["agents"][1].update(id=1), "unique"),
@@ -63,3 +63,12 @@ def test_yaml_round_trip(tmp_path):
     p = tmp_path / "r.yaml"
     p.write_text(sc.to_yaml())
     assert S.load(p) == sc
+
+
+def test_radio_parameters_are_validated_by_netsim():
+    from netsim.sim import Simulation
+
+    sc = S.load("wang2019").with_overrides(radio={"model": "log-distance", "path_loss_exponent": -1, "rnage": 3})
+    with pytest.raises(S.ScenarioError) as exc:
+        Simulation(sc)
+    assert "radio.path_loss_exponent" in str(exc.value) and "radio.rnage" in str(exc.value)

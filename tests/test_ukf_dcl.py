@@ -103,7 +103,7 @@ def test_partitioned_swarm_stays_consistent():
     err = {"il": [], "ukf-dcl": [], "ukf-ccl": []}
     splits = 0
     for seed in range(1, 7):
-        sc = S.load("random7").with_overrides(**{"radio.range": 60.0, "seed": seed})
+        sc = S.load("random7").with_overrides(**{"radio.range_m": 60.0, "seed": seed})
         m, nodes = run(sc)
         splits += sum(n.stats["group_splits"] for n in nodes.values())
         for a in err:
@@ -133,13 +133,13 @@ class Capture:
         self.runner = InProcessRunner(self.sim, self.nodes)
 
     def ticks(self, n):
-        original = self.runner._transmit
+        original = self.runner._encode
 
-        def spy(queue, src, send, t, order):
-            self.frames.append((src, send))
-            return original(queue, src, send, t, order)
+        def spy(src, sends):
+            self.frames += [(src, send) for send in sends]
+            return original(src, sends)
 
-        self.runner._transmit = spy
+        self.runner._encode = spy
         self.sim.steps = n - 1
         self.runner.run()
 

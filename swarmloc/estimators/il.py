@@ -10,6 +10,9 @@ class IndependentNode(Node):
     algorithm = "il"
 
     def step(self, sensors) -> list[Send]:
+        gap = self.missed_motion(sensors)
+        if gap is not None:
+            self.P = self.P + gap
         x, F, Q = self.model.predict(self.x, odometry_of(sensors))
         self.x, self.P = kalman.predict(x, self.P, F, Q)
         self.k = sensors.k

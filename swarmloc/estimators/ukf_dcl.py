@@ -75,6 +75,14 @@ class UkfDclNode(Node):
     def estimate(self) -> Estimate:
         return Estimate(self.k, self.x.copy(), self.row[self.id].copy())
 
+    def resume(self, k, x, P) -> None:
+        """Continue from a checkpoint: own mean and covariance only. Cross-covariances are
+        gone, so the node rejoins as a group of its own under a fresh id; its former group
+        splits from it (conservatively) when a chain next meets it."""
+        self.k, self.x = int(k), np.array(x, float)
+        self.row = {self.id: np.array(P, float)}
+        self.gid, self.members = [int(k), 2**40, self.id], [self.id]
+
     def covariance_row(self) -> dict[int, np.ndarray]:
         return {j: b.copy() for j, b in self.row.items()}
 
@@ -93,6 +101,9 @@ class UkfDclNode(Node):
         if not self.model.identity_transition:
             raise NotImplementedError("UKF-DCL here needs F = I (cross-covariances kept by prediction)")
         self.stats["measurements_dropped"] += len(self.pending)  # chains that never finished
+        gap = self.missed_motion(sensors)
+        if gap is not None:
+            self.row[self.id] = self.row[self.id] + gap
         self.k, self.epoch = sensors.k, 0
         self.pending.clear()
         self.known_pending.clear()
