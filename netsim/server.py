@@ -71,6 +71,7 @@ class NetsimServer:
         self.received = {a: 0 for a in self.ids}  # frames taken from radio/tx/<a> since it (re)joined
         self.invalid_tx = 0
         self.round: list[RadioTx] = []
+        self._new_event = False
         self.pending_faults: list = []
         self.record = RunRecord(self.ids, len(scenario.agent(self.ids[0]).start))
         self.seq = 0
@@ -179,6 +180,7 @@ class NetsimServer:
         tx = RadioTx(src, env.dst, env.seq, payload)
         if self.mode == "realtime":
             self._deliver_all(self.sim.offer(tx, self._now()), arrived)
+            self._new_event = True
         elif self.rounds:
             self.round.append(tx)
         else:
@@ -359,7 +361,9 @@ class NetsimServer:
                 break
             event = self.sim.next_event_time()
             wake = min(t_next, event if event is not None else t_next)
-            self._pump(lambda: False, max(0.0, (wake - now) / self.sc.clock.speed))
+            # Wake early when a new frame enters the radio: its delivery may come before `wake`.
+            self._new_event = False
+            self._pump(lambda: self._new_event, max(0.0, (wake - now) / self.sc.clock.speed))
         if k == self.sim.steps:  # let the last tick's frames land before stopping
             self._pump(lambda: False, 0.2)
             self._deliver_all(self.sim.advance(float("inf")))

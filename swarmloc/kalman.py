@@ -53,15 +53,26 @@ def permuted_cholesky(P: np.ndarray, first: list[int], block: int) -> np.ndarray
 
 @dataclass(frozen=True)
 class UnscentedTransform:
-    """Symmetric sigma points with the spread fixed as n + lambda (default 3, Julier's choice).
+    """Symmetric sigma points with the spread fixed as n + lambda.
 
     Parameterising by the spread rather than lambda makes the transform of a measurement that
     touches only k state components identical whether computed on those k components or on
     the whole swarm state: the extra sigma points sit at the mean and their weight folds into
     the centre weight. UKF-DCL relies on exactly this.
+
+    Choose spread >= the dimension k of what the measurement touches (the (m, n) pair: 2 state
+    dims): then the folded centre weight 1 - k/spread is not negative, Pzz is a positive
+    combination and the posterior P - Pxz Pz^-1 Pxz^T stays positive semi-definite. Julier's
+    n + kappa = 3 gives a negative centre weight for k = 4; with the range measurement of two
+    close, uncertain platforms we saw it drive a covariance negative (docs/ukf-dcl.md).
     """
 
-    spread: float = 3.0
+    @staticmethod
+    def for_pair(state_dim: int, spread: float | None) -> "UnscentedTransform":
+        """The default spread for a pairwise measurement: the pair's dimension."""
+        return UnscentedTransform(float(2 * state_dim) if spread is None else float(spread))
+
+    spread: float
 
     def weights(self, n: int) -> tuple[float, float]:
         """(centre weight, weight of each of the 2n outer points); mean and covariance alike."""

@@ -166,7 +166,9 @@ class DclCommit:
     or splits groups the chain could not reach whole (`splits`: [group size, part members...]
     per part; each part's covariance block is scaled by size/len(part) and decorrelated from
     the rest), or does nothing but advance the epoch. `finished` says whether the measurement
-    is done (applied or dropped) or will be retried in the next epoch.
+    is done (applied or dropped) or will be retried in the next epoch. `groups` repeats what
+    each node reported to the chain, so a node the commit reaches late can tell whether its
+    state is still the one the gains were computed for.
     """
 
     k: Tick
@@ -179,6 +181,7 @@ class DclCommit:
     merge: IdList
     splits: Annotated[list, ListOf(ListOf(Int(0, MAX_ID), max_len=1025))]
     finished: Annotated[bool, Bool()]
+    groups: Groups
     pending: Annotated[list, ListOf(ChainKey)]
 
 

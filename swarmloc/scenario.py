@@ -118,7 +118,8 @@ RADIO_MODELS = ("unit-disk", "log-distance")
 
 class Estimation(_Strict):
     initial_std: float = Field(0.1, gt=0, description="std of the known initial position (m)")
-    spread: float = Field(3.0, gt=0, description="unscented transform spread n + lambda")
+    spread: float | None = Field(None, gt=0, description="unscented transform spread n + lambda; default: "
+                                 "twice the state dimension (no negative sigma weight)")
 
 
 ESTIMATORS = ("il", "ukf-dcl", "ukf-ccl")

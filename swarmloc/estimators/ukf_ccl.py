@@ -19,14 +19,14 @@ from swarmloc.node import Estimate, odometry_of
 class CentralizedUKF:
     algorithm = "ukf-ccl"
 
-    def __init__(self, x0: dict[int, np.ndarray], P0: np.ndarray, model="planar-speed-heading", spread: float = 3.0):
+    def __init__(self, x0: dict[int, np.ndarray], P0: np.ndarray, model="planar-speed-heading", spread: float | None = None):
         self.model = MOTION_MODELS[model] if isinstance(model, str) else model
         self.ids = sorted(x0)
         self.index = {a: i for i, a in enumerate(self.ids)}
         self.d = self.model.state_dim
         self.x = np.concatenate([np.asarray(x0[a], float) for a in self.ids])
         self.P = scipy.linalg.block_diag(*[np.asarray(P0, float)] * len(self.ids))
-        self.ut = kalman.UnscentedTransform(spread)
+        self.ut = kalman.UnscentedTransform.for_pair(self.model.state_dim, spread)
         self.meas = Range(self.model)
         self.k = -1
 

@@ -38,6 +38,7 @@ chain. `epoch` counts commits within the tick: a frame of another epoch or tick 
 
 from __future__ import annotations
 
+import logging
 from collections import defaultdict
 
 import numpy as np
@@ -48,15 +49,20 @@ from swarmloc.messages import (CHAIN_OK, CHAIN_REFUSED, CHAIN_UNREACHABLE, Beaco
 from swarmloc.models import Range
 from swarmloc.node import Estimate, Node, Send, odometry_of
 
+log = logging.getLogger(__name__)
 Key = tuple[int, int, int]
+NEIGHBOUR_TICKS = 3
+LATE_TICKS = 2  # how long a late commit is kept in case an earlier missed one arrives
 
 
 class UkfDclNode(Node):
     algorithm = "ukf-dcl"
 
-    def __init__(self, aid, x0, P0, model="planar-speed-heading", spread: float = 3.0):
+    def __init__(self, aid, x0, P0, model="planar-speed-heading", spread: float | None = None, max_retries: int = 3):
         super().__init__(aid, x0, P0, model)
-        self.ut = kalman.UnscentedTransform(spread)
+        self.max_retries = max_retries
+        self.retries: dict[tuple, int] = {}  # (k, epoch, message type, dst) -> resends so far
+        self.ut = kalman.UnscentedTransform.for_pair(self.model.state_dim, spread)
         self.meas = Range(self.model)
         self.row: dict[int, np.ndarray] = {self.id: self.P}
         del self.P  # the own block lives in self.row; one copy only
@@ -68,7 +74,9 @@ class UkfDclNode(Node):
         self.beacons: dict[int, dict[int, np.ndarray]] = {}  # j -> {tick: position}
         self.neighbours: dict[int, np.ndarray] = {}  # snapshot for this tick
         self.held: list[tuple[int, object]] = []  # early frames: (src, msg)
-        self.stats = {"chains_committed": 0, "measurements_used": 0, "measurements_dropped": 0, "group_splits": 0}
+        self.late: list[tuple[int, DclCommit]] = []  # missed commits that may still apply
+        self.stats = {"chains_committed": 0, "measurements_used": 0, "measurements_dropped": 0, "group_splits": 0,
+                      "late_commits": 0}
 
     # ------------------------------------------------------------------ state
 
@@ -107,15 +115,20 @@ class UkfDclNode(Node):
         self.k, self.epoch = sensors.k, 0
         self.pending.clear()
         self.known_pending.clear()
+        self.retries.clear()
         x, _, Q = self.model.predict(self.x, odometry_of(sensors))
         self.x = x
         self.row[self.id] = self.row[self.id] + Q
 
-        # Neighbours are those heard in the previous tick: in lockstep every beacon of k-1 has
-        # arrived by now, so every node routes on the same snapshot whatever the delivery order.
-        self.neighbours = {j: b[self.k - 1] for j, b in self.beacons.items() if self.k - 1 in b}
+        # Neighbours are those heard in the last NEIGHBOUR_TICKS ticks before this one (their
+        # latest position): in lockstep all those beacons have arrived by now, so every node
+        # routes on the same snapshot whatever the delivery order; the window rides out a lost
+        # beacon or two on a lossy radio (a stale neighbour costs a NACK, a missing one a split).
+        lo = self.k - NEIGHBOUR_TICKS
         for j in list(self.beacons):
-            self.beacons[j] = {t: p for t, p in self.beacons[j].items() if t >= self.k - 1}
+            self.beacons[j] = {t: p for t, p in self.beacons[j].items() if t >= lo}
+        self.neighbours = {j: b[max(t for t in b if t < self.k)] for j, b in self.beacons.items()
+                           if any(t < self.k for t in b)}
 
         counts: dict[int, int] = {}
         for r in sensors.ranges:
@@ -158,6 +171,8 @@ class UkfDclNode(Node):
         if not isinstance(msg, (DclStart, DclToken, DclCommit)):
             return self.drop("unexpected-type", type(msg).__name__)
         if msg.k < self.k or (msg.k == self.k and msg.epoch < self.epoch):
+            if isinstance(msg, DclCommit):
+                return self._late_commit(src, msg)
             return self.drop("stale", f"k={msg.k} epoch={msg.epoch}")
         if msg.k > self.k or msg.epoch > self.epoch:
             if len(self.held) >= 256:
@@ -177,10 +192,15 @@ class UkfDclNode(Node):
     def _release_held(self) -> list[Send]:
         ready = [(s, m) for s, m in self.held if m.k == self.k and m.epoch == self.epoch]
         later = [(s, m) for s, m in self.held if m.k > self.k or (m.k == self.k and m.epoch > self.epoch)]
-        for _ in range(len(self.held) - len(ready) - len(later)):
-            self.drop("stale", "held frame overtaken")
-        self.held = later
         out = []
+        for s, m in self.held:
+            if (s, m) in ready or (s, m) in later:
+                continue
+            if isinstance(m, DclCommit):
+                out += self._late_commit(s, m)  # overtaken, but a commit may still apply
+            else:
+                self.drop("stale", "held frame overtaken")
+        self.held = later
         for src, m in ready:
             out += self.receive(src, m)
         return out
@@ -276,15 +296,20 @@ class UkfDclNode(Node):
         by_gid: dict[tuple, list[int]] = defaultdict(list)
         for i, g in token.groups.items():
             by_gid[tuple(g[:3])].append(i)
+        claims = {gid: {j for i in nodes for j in token.groups[i][3:]} for gid, nodes in by_gid.items()}
         splits = []
         for gid, nodes in sorted(by_gid.items()):
-            members = {j for i in nodes for j in token.groups[i][3:]}
-            if members != set(nodes):
-                splits.append([len(members), *sorted(nodes)])
+            if claims[gid] != set(nodes):
+                # The part's weight is relative to every member list that names one of its
+                # nodes: a node that missed a merge still counts in the merged group's size.
+                cluster = set().union(*(c for c in claims.values() if c & set(nodes)))
+                splits.append([len(cluster), *sorted(nodes)])
         empty = {}
         common = dict(k=token.k, epoch=token.epoch, key=token.key, parent=token.parent,
-                      pending=token.pending)
+                      groups=token.groups, pending=token.pending)
         if splits:
+            log.info("node %s: chain %s (k=%d epoch=%d) splits %s; visited %s reporting %s", self.id, token.key,
+                     token.k, token.epoch, splits, token.order, token.groups)
             retry = token.status != CHAIN_UNREACHABLE
             return DclCommit(Pz=token.Pz, nu=token.nu, gains=empty, merge=[], splits=splits, finished=not retry, **common)
         if token.status != CHAIN_OK:
@@ -294,9 +319,21 @@ class UkfDclNode(Node):
         return DclCommit(Pz=token.Pz, nu=token.nu, gains=token.gains, merge=merge, splits=[], finished=True, **common)
 
     def link_failed(self, dst: int, msg) -> list[Send]:
-        """A unicast did not arrive: forget that neighbour for this tick and route around it."""
+        """A unicast did not arrive. Try the same hop again a few times (a lossy link often
+        passes the next frame); then route around it, forgetting that neighbour for the tick."""
+        if not isinstance(msg, (DclStart, DclToken, DclCommit)) or (msg.k != self.k and not isinstance(msg, DclCommit)):
+            return self.drop("undeliverable", type(msg).__name__)  # a chain step of a tick that is over
+        tries = self.retries.get((msg.k, msg.epoch, msg.TYPE, dst), 0)
+        # A lost commit costs a group split later; a lost token only a detour: try commits harder.
+        if tries < self.max_retries * (3 if isinstance(msg, DclCommit) else 1):
+            self.retries[(msg.k, msg.epoch, msg.TYPE, dst)] = tries + 1
+            return [Send(msg, dst)]
         self.neighbours.pop(dst, None)
-        if not isinstance(msg, (DclStart, DclToken)) or msg.k != self.k or msg.epoch != self.epoch:
+        if isinstance(msg, DclCommit):
+            # dst (and the tree below it) misses this commit. It keeps its old group id, so the
+            # next chain that meets it splits it from those who applied the commit.
+            return self.drop("commit-undelivered", f"to {dst}")
+        if msg.epoch != self.epoch:
             return self.drop("undeliverable", type(msg).__name__)
         if isinstance(msg, DclStart):
             # The measured platform is out of reach: the measurement is lost, but the chain
@@ -309,15 +346,67 @@ class UkfDclNode(Node):
 
     def _on_commit(self, src: int, msg: DclCommit) -> list[Send]:
         key = tuple(msg.key)
+        if not self._apply_commit(src, msg):
+            return []
+        self.epoch += 1
+        if key in self.pending and msg.finished:
+            del self.pending[key]
+            self.stats["measurements_used" if msg.gains else "measurements_dropped"] += 1
+        self.known_pending = {tuple(k) for k in msg.pending} - ({key} if msg.finished else set())
+        out = [Send(msg, c) for c, p in sorted(msg.parent.items()) if p == self.id]
+        out += self._retry_late()
+        out += self._start_next()
+        out += self._release_held()
+        return out
+
+    def _late_commit(self, src: int, msg: DclCommit) -> list[Send]:
+        """A commit of an earlier tick or epoch (we moved on before it reached us). If our group
+        id is the one we reported to that chain, nothing has touched our row since and the
+        prediction since commutes with it (F = I), so applying it now is exact. If not, an
+        earlier commit we also missed may still arrive and make it apply: keep it a while.
+        Either way it goes on down the tree: whether it applies is each node's own question."""
+        if msg.groups.get(self.id) is None or msg.parent.get(self.id, msg.key[0]) != src:
+            return self.drop("stale", f"commit k={msg.k} epoch={msg.epoch}")
+        out = [Send(msg, c) for c, p in sorted(msg.parent.items()) if p == self.id]
+        if msg.k < self.k - LATE_TICKS or len(self.late) >= 64:
+            return out + self.drop("stale", f"commit k={msg.k} epoch={msg.epoch}")
+        self.late.append((src, msg))
+        return out + self._retry_late()
+
+    def _retry_late(self) -> list[Send]:
+        """Apply kept late commits whose reported group id is ours now, oldest first."""
+        changed = True
+        while changed:
+            changed = False
+            for item in sorted(self.late, key=lambda sm: (sm[1].k, sm[1].epoch)):
+                src, msg = item
+                if list(msg.groups[self.id][:3]) == self.gid:
+                    self.late.remove(item)
+                    if self._apply_commit(src, msg):
+                        self.stats["late_commits"] += 1
+                        changed = True
+                        break
+        for item in [sm for sm in self.late if sm[1].k < self.k - LATE_TICKS]:
+            self.late.remove(item)
+            self.drop("stale", f"late commit k={item[1].k} epoch={item[1].epoch} never applicable")
+        return []
+
+    def _apply_commit(self, src: int, msg: DclCommit) -> bool:
+        """Check a commit and apply it to the state; False (and a counted drop) if unfit."""
+        key = tuple(msg.key)
         d, dz = self.model.state_dim, self.meas.dim
         if msg.parent.get(self.id, key[0]) != src or (self.id != key[0] and self.id not in msg.parent):
-            return self.drop("misrouted", f"commit {key}")
+            self.drop("misrouted", f"commit {key}")
+            return False
         if msg.gains and self.id not in msg.gains:
-            return self.drop("misrouted", f"commit {key} without our gain")
+            self.drop("misrouted", f"commit {key} without our gain")
+            return False
         if msg.Pz.shape != (dz, dz) or msg.nu.shape != (dz,) or any(g.shape != (d, dz) for g in msg.gains.values()):
-            return self.drop("shape", "commit")
+            self.drop("shape", "commit")
+            return False
         if any(len(s) < 2 or s[0] < len(s) - 1 for s in msg.splits):
-            return self.drop("invalid", "commit splits")
+            self.drop("invalid", "commit splits")
+            return False
         row, gid, members = dict(self.row), self.gid, self.members
         for size, *part in msg.splits:
             if self.id in part:
@@ -336,16 +425,8 @@ class UkfDclNode(Node):
                 gid, members = [msg.k, msg.epoch, key[0]], list(msg.merge)
             row = {j: b for j, b in row.items() if j in members}
         if not np.isfinite(x).all() or not all(np.isfinite(b).all() for b in row.values()):
-            return self.drop("invalid", "non-finite update")
+            self.drop("invalid", "non-finite update")
+            return False
         self.x, self.row, self.gid, self.members = x, row, gid, members
-        self.epoch += 1
         self.stats["chains_committed"] += 1
-        if key in self.pending and msg.finished:
-            del self.pending[key]
-            self.stats["measurements_used" if msg.gains else "measurements_dropped"] += 1
-        self.known_pending = {tuple(k) for k in msg.pending} - ({key} if msg.finished else set())
-
-        out = [Send(msg, c) for c, p in sorted(msg.parent.items()) if p == self.id]
-        out += self._start_next()
-        out += self._release_held()
-        return out
+        return True
