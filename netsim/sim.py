@@ -72,14 +72,15 @@ class Simulation:
 
     def tick(self, live_faults: list[_Fault] = ()):
         """Advance one tick; faults due by now (timeline, expiring --for, live) apply to its frames."""
-        frames = self.world.step(self.faults.gnss_ok)
-        self.k, self.t = self.world.k, self.world.t
+        # Faults first, so a GNSS outage or a kill due at t already shapes tick t's frames.
+        self.k, self.t = self.world.k + 1, (self.world.k + 1) * self.world.dt
         while self.timeline and self.timeline[0].at <= self.t + 1e-9:
             self.apply(self.timeline.pop(0), "scenario")
         for f in self.faults.due(self.t):
             self.apply(f, "duration")
         for f in live_faults:
             self.apply(f, "live")
+        frames = self.world.step(self.faults.gnss_ok)
         self.medium.set_positions(self.world.pos)
         self.medium.set_jammers([Jammer(tuple(pos), f.power_dbm, self.t, float("inf"), f.band_hz)
                                  for f, pos in self.faults.jammers(self.t)])

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from swarmloc.messages import OdometryMsg, RangeMsg, Sensors
+from swarmloc.messages import GnssMsg, OdometryMsg, RangeMsg, Sensors
 from swarmloc.node import Estimate
 
 FORMAT_VERSION = 1
@@ -81,7 +81,13 @@ class RunRecord:
         rows = [(k, m, r.target, r.range, r.std) for k, frames in zip(self.k, self.sensors)
                 for m in self.ids for r in frames[m].ranges]
         rng = np.array(rows, float).reshape(-1, 5)
-        return {"ids": np.array(self.ids), "k": np.array(self.k), "t": np.array(self.t), "odometry": odo,
+        gnss = np.full((len(self.k), len(self.ids), 3), np.nan)  # x, y, std; NaN: no fix
+        for ti, frames in enumerate(self.sensors):
+            for ci, a in enumerate(self.ids):
+                g = frames[a].gnss
+                if g is not None:
+                    gnss[ti, ci] = [*g.position[:2], g.std]
+        return {"ids": np.array(self.ids), "k": np.array(self.k), "t": np.array(self.t), "odometry": odo, "gnss": gnss,
                 "range_k": rng[:, 0].astype(np.int64), "range_m": rng[:, 1].astype(np.int64),
                 "range_n": rng[:, 2].astype(np.int64), "range_z": rng[:, 3], "range_std": rng[:, 4]}
 
@@ -97,7 +103,9 @@ def frames_from_arrays(a: dict[str, np.ndarray]) -> list[dict[int, Sensors]]:
             o = a["odometry"][ti, ci]
             ranges = [RangeMsg(int(a["range_n"][j]), float(a["range_z"][j]), float(a["range_std"][j]))
                       for j in sel if a["range_m"][j] == m]
-            frames[m] = Sensors(int(k), float(a["t"][ti]), OdometryMsg(*map(float, o)), ranges)
+            g = a["gnss"][ti, ci] if "gnss" in a else np.full(3, np.nan)
+            gnss = None if np.isnan(g[0]) else GnssMsg(g[:2].copy(), float(g[2]))
+            frames[m] = Sensors(int(k), float(a["t"][ti]), OdometryMsg(*map(float, o)), ranges, gnss)
         out.append(frames)
     return out
 

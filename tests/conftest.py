@@ -93,3 +93,41 @@ def swarm_pids(swarm: str) -> list[int]:
             if swarm.encode() in cmdline and any(b"agents" in c or b"netsim" in c for c in cmdline):
                 out.append(int(d.name))
     return out
+
+
+class NetsimClient:
+    """A Zenoh client of a running netsim's control queryable (fast polling for tests)."""
+
+    def __init__(self, endpoint: str, swarm: str):
+        import zenoh
+
+        from swarmloc import wire
+
+        self.wire, self.keys = wire, wire.Keys(swarm)
+        self.session = zenoh.open(zenoh.Config.from_json5(wire.zenoh_config("client", connect=[endpoint])))
+
+    def request(self, op: str, args: dict | None = None, timeout: float = 5.0) -> dict:
+        from swarmloc.messages import Control, Reply
+
+        payload = self.wire.encode(Control(op, args or {}), 0, 1)
+        for r in self.session.get(self.keys.control, payload=payload, timeout=timeout):
+            if r.ok is not None:
+                body = self.wire.decode(r.ok.payload.to_bytes(), expect=(Reply,)).body
+                assert body.ok, body.error
+                return body.data
+        raise AssertionError(f"no reply to {op}")
+
+    def wait(self, predicate, timeout: float = 30.0, what: str = "condition"):
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            try:
+                s = self.request("status")
+            except AssertionError:
+                s = None
+            if s is not None and predicate(s):
+                return s
+            time.sleep(0.05)
+        raise AssertionError(f"timed out waiting for {what}")
+
+    def close(self):
+        self.session.close()
