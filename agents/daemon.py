@@ -115,6 +115,7 @@ class AgentDaemon:
                 break
             if kind == "stats":
                 self._reply_stats(data)
+                data = None  # release the query: Zenoh sends the final reply when it is freed
                 continue
             try:
                 sends = self._handle(kind, data, attachment)

@@ -7,15 +7,11 @@ enqueues, and the latency is taken when the receiver's loop picks the frame up.
 
 Paths, each a set of separate OS processes on 127.0.0.1, measured in turn in every repetition:
 
-- netsim, real time (as shipped): `python -m agents run` of an N-agent scenario with
-  `clock.mode: realtime` and a unit-disk radio with latency_s 0 (modelled latency zero);
-  hop statistics from metrics.json `agent_stats`.
-- netsim, real time, woken on arrival: the same scenario, but netsim is a subclass defined
-  in this script whose real-time loop returns from its wait as soon as a frame arrives (the
-  shipped loop sleeps until the next tick or radio event it knew about *before* the frame came,
-  see docs/benchmarks.md). Agents are the shipped `python -m agents agent` processes.
-- netsim, lockstep (as shipped): the same scenario with `clock.mode: lockstep`; without
-  interference (unit disk) netsim routes each frame as soon as it arrives.
+- netsim, real time: `python -m agents run` of an N-agent scenario with `clock.mode: realtime`
+  and a unit-disk radio with latency_s 0 (modelled latency zero); hop statistics from
+  metrics.json `agent_stats`.
+- netsim, lockstep: the same scenario with `clock.mode: lockstep`; without interference (unit
+  disk) netsim routes each frame as soon as it arrives.
 - Zenoh peer to peer: a publisher process and a subscriber process in peer mode.
 - Zenoh via a router: publisher and subscriber in client mode through a third process that
   opens a Zenoh session in router mode (as netsim does), without netsim's Python relay.
@@ -24,7 +20,7 @@ The direct paths send frames of the size the agents send (median of the first ne
 radio.npz), paced two ways: one every --interval s (processes kept busy, as in lockstep) and
 one every dt (processes idle between frames, as in real time at speed 1).
 
-Usage: .venv/bin/python benchmarks/bench_latency.py [--repeat 3] [--agents 2] [--duration 20] [--dt 0.1]
+Usage: .venv/bin/python benchmarks/bench_latency.py [--repeat 3] [--agents 2] [--duration 30] [--dt 0.1]
 Timing only; nothing here is a pass/fail test.
 """
 
@@ -292,53 +288,6 @@ def role_pub(a) -> None:
         session.close()
 
 
-def role_netsim(a) -> None:
-    """netsim with a real-time loop that wakes when a frame arrives (this script's workaround).
-
-    Identical to the shipped NetsimServer._realtime_tick except that the waits (between radio
-    events, and the final 0.2 s) return once _on_tx has offered a frame, so the next advance()
-    delivers it at once.
-    """
-    import logging
-
-    from netsim.server import NetsimServer, ServerConfig
-    from swarmloc import scenario as scenarios
-
-    class WakeOnArrival(NetsimServer):
-        _woken = False
-
-        def _on_tx(self, key, payload, stamp):
-            super()._on_tx(key, payload, stamp)
-            self._woken = True
-
-        def _realtime_tick(self):
-            k = self._start_tick()
-            t_next = (k + 1) * self.sc.clock.dt
-            while True:
-                now = self._now()
-                self._deliver_all(self.sim.advance(now))
-                if now >= t_next or k == self.sim.steps:
-                    break
-                event = self.sim.next_event_time()
-                wake = min(t_next, event if event is not None else t_next)
-                self._woken = False
-                self._pump(lambda: self._woken, max(0.0, (wake - now) / self.sc.clock.speed))
-            if k == self.sim.steps:  # the shipped loop holds this tick's frames for its full 0.2 s
-                end = time.monotonic() + 0.2
-                while end - time.monotonic() > 0:
-                    self._woken = False
-                    self._pump(lambda: self._woken, end - time.monotonic())
-                    self._deliver_all(self.sim.advance(self._now()))
-                self._deliver_all(self.sim.advance(float("inf")))
-            self._end_tick(k)
-
-    logging.basicConfig(level=logging.WARNING, format="%(asctime)s netsim %(levelname)s %(message)s")
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
-    sc = scenarios.load(a.scenario)
-    cfg = ServerConfig(swarm=a.swarm, listen=(a.listen,), out=Path(a.out), plots=False)
-    WakeOnArrival(sc, cfg).run()
-
-
 # --------------------------------------------------------------------------- measurements
 
 
@@ -385,32 +334,6 @@ def run_agents_run(procs: Procs, scenario: Path, out: Path, swarm: str, budget: 
         raise RuntimeError(f"`agents run` overran {budget:.0f} s (log {out.parent / (out.name + '.cli.log')})")
     if rc != 0:
         raise RuntimeError(f"`agents run` exited {rc}: {(out.parent / (out.name + '.cli.log')).read_text()[-2000:]}")
-    return json.loads((out / "metrics.json").read_text())
-
-
-def run_patched_netsim(procs: Procs, scenario: Path, n: int, out: Path, swarm: str, budget: float) -> dict:
-    port = free_port()
-    endpoint = f"tcp/{HOST}:{port}"
-    out.mkdir(parents=True, exist_ok=True)
-    net = procs.start([PY, str(HERE), "_netsim", "--scenario", str(scenario), "--listen", endpoint, "--swarm", swarm,
-                       "--out", str(out)], out / "netsim.log")
-    agents = []
-    try:
-        if not wait_listening(port, net):
-            raise RuntimeError(f"patched netsim did not start: {(out / 'netsim.log').read_text()[-2000:]}")
-        for a in range(1, n + 1):
-            agents.append(procs.start([PY, "-m", "agents", "agent", "--id", str(a), "--scenario", str(scenario),
-                                       "--swarm", swarm, "--connect", endpoint], out / f"agent-{a}.log"))
-        rc = procs.wait(net, budget)
-        if rc is None:
-            raise RuntimeError(f"patched netsim overran {budget:.0f} s")
-        if rc != 0:
-            raise RuntimeError(f"patched netsim exited {rc}: {(out / 'netsim.log').read_text()[-2000:]}")
-        for p in agents:  # they exit on netsim's stop clock
-            procs.wait(p, 5.0)
-    finally:
-        for p in [*agents, net]:
-            procs.stop(p)
     return json.loads((out / "metrics.json").read_text())
 
 
@@ -467,18 +390,29 @@ def cpu_model() -> str:
     return platform.processor() or "unknown"
 
 
+def code_version() -> str:
+    """Commit of the project code measured, and whether netsim/swarmloc/agents differ from it."""
+    repo = Path(__file__).resolve().parent.parent
+    try:
+        head = subprocess.run(["git", "-C", str(repo), "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                              timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(repo), "status", "--porcelain", "--", "netsim", "swarmloc", "agents"],
+                               capture_output=True, text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return f"{head}{' + uncommitted changes' if dirty else ''}" if head else "unknown"
+
+
 PATHS = [
-    ("rt-woken", "netsim, real time, woken on arrival (script workaround)"),
-    ("lockstep", "netsim, lockstep (as shipped; unit disk routes on arrival)"),
-    ("rt-shipped", "netsim, real time (as shipped)"),
+    ("realtime", "netsim, real time"),
+    ("lockstep", "netsim, lockstep (unit disk: routed on arrival)"),
     ("peer-fast", "Zenoh peer to peer, a frame every {fast} ms"),
     ("router-fast", "Zenoh client -> router -> client, a frame every {fast} ms"),
     ("peer-tick", "Zenoh peer to peer, a frame every dt = {tick} ms"),
     ("router-tick", "Zenoh client -> router -> client, a frame every dt = {tick} ms"),
 ]
 # (netsim path, direct path it is compared with): same pacing regime (hot back-to-back vs once a tick).
-DIFFS = [("rt-woken", "router-tick"), ("rt-woken", "peer-tick"), ("lockstep", "router-fast"), ("lockstep", "peer-fast"),
-         ("rt-shipped", "router-tick")]
+DIFFS = [("realtime", "router-tick"), ("realtime", "peer-tick"), ("lockstep", "router-fast"), ("lockstep", "peer-fast")]
 
 
 def main() -> None:
@@ -486,7 +420,7 @@ def main() -> None:
     p.add_argument("--repeat", type=int, default=3)
     p.add_argument("--agents", type=int, default=2)
     p.add_argument("--dt", type=float, default=0.1, help="tick of the netsim scenario (s)")
-    p.add_argument("--duration", type=float, default=20.0, help="simulated = wall seconds of each real-time run")
+    p.add_argument("--duration", type=float, default=30.0, help="simulated = wall seconds of each real-time run")
     p.add_argument("--count", type=int, default=1000, help="frames per direct-path run")
     p.add_argument("--interval", type=float, default=0.002, help="s between frames on the direct paths")
     a = p.parse_args()
@@ -513,16 +447,11 @@ def main() -> None:
                 for key, _ in PATHS:
                     name = f"r{rep}-{key}"
                     t0 = time.monotonic()
-                    if key == "rt-woken":
-                        m = run_patched_netsim(procs, scen["realtime"], a.agents, tmp / name, f"{tag}{rep}w", budget)
-                        r = hop_stats(m)
-                        if size is None:
+                    if key in ("realtime", "lockstep"):
+                        r = hop_stats(run_agents_run(procs, scen[key], tmp / name, f"{tag}{rep}{key[0]}", budget))
+                        if size is None:  # the direct paths send frames of the agents' median size
                             sizes = frame_sizes(tmp / name)
                             size = int(statistics.median(sizes))
-                    elif key == "lockstep":
-                        r = hop_stats(run_agents_run(procs, scen["lockstep"], tmp / name, f"{tag}{rep}l", budget))
-                    elif key == "rt-shipped":
-                        r = hop_stats(run_agents_run(procs, scen["realtime"], tmp / name, f"{tag}{rep}s", budget))
                     else:
                         kind, pace = key.split("-")
                         count, interval = (a.count, a.interval) if pace == "fast" else (int(round(a.duration / a.dt)), a.dt)
@@ -541,7 +470,7 @@ def main() -> None:
     argv = " ".join(sys.argv[1:])
     print(f"## Latency netsim adds to a radio hop ({date.today()})\n")
     print(f"Machine: {os.cpu_count()} vCPU ({cpu_model()}), Python {platform.python_version()}, Linux {platform.release()}. "
-          f"Command: `.venv/bin/python benchmarks/bench_latency.py{(' ' + argv) if argv else ''}`. "
+          f"Code: {code_version()}. Command: `.venv/bin/python benchmarks/bench_latency.py{(' ' + argv) if argv else ''}`. "
           f"1-min load average {load_start:.1f} at start, {load_end:.1f} at end (other work shares the machine).\n")
     print(f"netsim runs: {a.agents} agents (UKF-DCL), unit disk with latency_s 0, dt {a.dt} s, {a.duration:g} s per real-time "
           f"run at speed 1; hop = median of the agents' medians, p99 = largest agent p99. Direct paths: frames of "
@@ -561,6 +490,7 @@ def main() -> None:
         d_p99 = med[key]["p99_us"] - med[base]["p99_us"]
         print(f"- added by netsim ({key} minus {base}): median {d_med:+,.0f} us, p99 {d_p99:+,.0f} us")
 
+
 if __name__ == "__main__":
     if len(sys.argv) > 1 and sys.argv[1].startswith("_"):
         role = sys.argv[1]
@@ -573,11 +503,9 @@ if __name__ == "__main__":
         cp.add_argument("--interval", type=float, default=0.002)
         cp.add_argument("--timeout", type=float, default=60.0)
         cp.add_argument("--out", default="")
-        cp.add_argument("--scenario", default="")
-        cp.add_argument("--swarm", default="default")
         ca = cp.parse_args(sys.argv[2:])
         if role == "_router":
             signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
-        {"_router": role_router, "_sub": role_sub, "_pub": role_pub, "_netsim": role_netsim}[role](ca)
+        {"_router": role_router, "_sub": role_sub, "_pub": role_pub}[role](ca)
     else:
         main()

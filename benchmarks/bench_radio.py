@@ -25,6 +25,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 import argparse
 import platform
 import statistics
+import subprocess
 import sys
 import time
 from datetime import date
@@ -100,6 +101,19 @@ def cpu_model() -> str:
     except OSError:
         pass
     return platform.processor() or "unknown"
+
+
+def code_version() -> str:
+    """Commit of the project code measured, and whether netsim/swarmloc/agents differ from it."""
+    repo = Path(__file__).resolve().parent.parent
+    try:
+        head = subprocess.run(["git", "-C", str(repo), "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                              timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(repo), "status", "--porcelain", "--", "netsim", "swarmloc", "agents"],
+                               capture_output=True, text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return f"{head}{' + uncommitted changes' if dirty else ''}" if head else "unknown"
 
 
 def plot(summary: list[dict], path: Path) -> None:
@@ -179,7 +193,7 @@ def main() -> None:
     print(f"## Radio routing throughput, pure Simulation ({date.today()})\n")
     print(f"Machine: {os.cpu_count()} vCPU ({cpu_model()}), Python {platform.python_version()}, "
           f"numpy {np.__version__}, Linux {platform.release()}. "
-          f"Command: `.venv/bin/python benchmarks/bench_radio.py{(' ' + argv) if argv else ''}`. "
+          f"Code: {code_version()}. Command: `.venv/bin/python benchmarks/bench_radio.py{(' ' + argv) if argv else ''}`. "
           f"1-min load average {load_start:.1f} at start, {load_end:.1f} at end (other work shares the machine).\n")
     print(f"{FRAME_BYTES} B broadcast per agent per tick, agents uniform in a {SQUARE_M:.0f} m square (seed 1), "
           f"medians of {a.repeat} repetitions; {WARMUP_TICKS} warm-up ticks not counted.\n")

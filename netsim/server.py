@@ -28,7 +28,7 @@ import zenoh
 from netsim.sim import Simulation
 from swarmloc import wire
 from swarmloc.faults import FaultError, inverse_of, nodes_named, parse_fault
-from swarmloc.messages import Clock, Control, Done, EstimateMsg, Event, LinkMsg, Links, Reply, Truth
+from swarmloc.messages import Clock, Control, Done, EstimateMsg, Event, LinkMsg, LinkNack, Links, Reply, Truth
 from swarmloc.node import Estimate, RadioRx, RadioTx
 from swarmloc.results import RunRecord, compute_references, metrics, write_run
 from swarmloc.scenario import Scenario
@@ -177,6 +177,9 @@ class NetsimServer:
             return
         sent = wire.decode_send_time(attachment.to_bytes() if attachment is not None else None)
         self.sent_at[(src, env.seq)] = sent if sent is not None else float("nan")
+        if len(self.sent_at) > 100_000:  # only recent frames are still in flight
+            for key in list(self.sent_at)[:50_000]:
+                del self.sent_at[key]
         tx = RadioTx(src, env.dst, env.seq, payload)
         if self.mode == "realtime":
             self._deliver_all(self.sim.offer(tx, self._now()), arrived)
@@ -195,7 +198,11 @@ class NetsimServer:
     def _deliver(self, rx: RadioRx) -> None:
         r = rx.receiver
         if r not in self.alive:
-            return  # a dead agent hears nothing; it is not counted either
+            # A dead agent hears nothing and is not counted; like a missing MAC ACK, its sender
+            # learns that a unicast did not get through.
+            if rx.unicast and rx.src in self.alive:
+                self._deliver(RadioRx(rx.src, rx.t, nack=LinkNack(rx.seq, r, "down")))
+            return
         if rx.nack is not None:
             self.seq += 1
             data, sent = wire.encode(rx.nack, NETSIM_ID, self.seq), None
@@ -268,6 +275,7 @@ class NetsimServer:
             except queue.Empty:
                 return until()
             self._handle(item)
+            item = None  # a held Zenoh query is only answered (final) once released
             while True:  # drain what is already queued before testing the condition again
                 try:
                     self._handle(self.q.get_nowait())

@@ -53,6 +53,7 @@ class Simulation:
         self.medium = RadioMedium(self.channel, rng["radio"])
         self.loss_seed = int(rng["loss"].integers(2**62))
         self.faults = FaultState(self.ids)
+        self.medium.set_positions(self.world.pos)  # a link table is available before tick 0
         self.timeline = sorted(scenario.faults, key=lambda f: f.at)
         self.k, self.t = -1, 0.0
         self.vt = 0.0  # modelled time of the next lockstep round
@@ -106,7 +107,9 @@ class Simulation:
         out: list[Rx] = []
         for tx in sorted(frames, key=lambda f: (f.src, f.seq)):
             out += self.offer(tx, self.vt)
-        out += self.advance(float("inf"))
+        # Resolve event by event (advancing to infinity would leave the medium's clock there).
+        while (t := self.medium.next_event_time()) is not None:
+            out += self.advance(t)
         if out:
             self.vt = max(self.vt, max(r.t for r in out))
         return sorted(out, key=lambda r: (r.t, r.receiver, r.nack is not None))
@@ -151,7 +154,7 @@ class Simulation:
                 self.delivered[(tx.src, o.receiver)] += 1
                 self.last_heard[(tx.src, o.receiver)] = o.t
                 self.radio_log.append((self.k, tx.src, o.receiver, len(tx.data), ""))
-                out.append(Rx(o.receiver, o.t, data=tx.data, src=tx.src, seq=tx.seq))
+                out.append(Rx(o.receiver, o.t, data=tx.data, src=tx.src, seq=tx.seq, unicast=tx.dst is not None))
             else:
                 self._drop(tx, o.receiver, reason)
                 if tx.dst is not None:

@@ -114,6 +114,7 @@ class RadioRx:
     nack: LinkNack | None = None
     src: int = -1  # the frame's sender (for a NACK: the radio)
     seq: int = -1  # the frame's envelope seq
+    unicast: bool = False  # addressed to receiver alone (a broadcast copy otherwise)
 
 
 class Outbox:

@@ -115,9 +115,9 @@ class Array(Spec):
             raise WireError(f"{path}: dtype {v['dtype']!r} not allowed (only '<f8')")
         shape = v["shape"]
         if not isinstance(shape, list) or len(shape) != self.ndim or not all(
-            isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape
+            isinstance(s, int) and not isinstance(s, bool) and 0 <= s <= MAX_ARRAY_ELEMENTS for s in shape
         ):
-            raise WireError(f"{path}: bad shape {shape!r} (want {self.ndim} non-negative dims)")
+            raise WireError(f"{path}: bad shape {shape!r} (want {self.ndim} dims of 0..{MAX_ARRAY_ELEMENTS})")
         if self.square and len(set(shape)) != 1:
             raise WireError(f"{path}: shape {shape} not square")
         count = math.prod(shape)

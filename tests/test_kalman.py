@@ -68,3 +68,23 @@ def test_update_subtracts_gain_term():
     _, P_new, K = kalman.update(np.zeros(4), P, Pxz, Pz, np.zeros(1))
     assert np.trace(P_new) < np.trace(P)
     np.testing.assert_allclose(P_new, P - K @ Pz @ K.T)
+
+
+def test_spread_at_least_pair_dimension_keeps_posterior_positive():
+    """With spread >= the dimension of what the measurement touches, no sigma weight is
+    negative and P - Pxz Pz^-1 Pxz^T stays PSD for any prior. Julier's n + kappa = 3 on the
+    4-dimensional pair can go negative for close, uncertain platforms (what we saw in a run)."""
+    rng = np.random.default_rng(7)
+    h = lambda X: np.linalg.norm(X[..., :2] - X[..., 2:4], axis=-1, keepdims=True)
+    R = np.array([[1.0]])
+    worst = {3.0: np.inf, 4.0: np.inf}
+    for _ in range(3000):
+        P = random_spd(4, rng) * rng.uniform(0.1, 50)
+        x = np.concatenate([np.zeros(2), rng.normal(size=2) * rng.uniform(0.1, 5)])  # close platforms
+        for spread in worst:
+            _, Pzz, Y = kalman.UnscentedTransform(spread).measurement_moments(x, np.linalg.cholesky(P), h)
+            S = np.linalg.cholesky(P)
+            post = P - (S @ Y) @ np.linalg.solve(Pzz + R, (S @ Y).T)
+            worst[spread] = min(worst[spread], np.linalg.eigvalsh(post).min())
+    assert worst[4.0] > -1e-9
+    assert worst[3.0] < -1e-3  # the failure the default avoids

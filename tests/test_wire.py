@@ -58,6 +58,7 @@ def _arr(a):
         (_envelope({"k": 1}), "missing fields"),
         (_envelope({"k": 1, "position": _arr([0, 0]), "extra": 1}), "unknown fields"),
         (b"\x91" * (wire.MAX_FRAME_BYTES + 1), "exceeds"),
+        (_envelope({"k": 1, "position": {"dtype": "<f8", "shape": [2**63], "data": b""}}), "bad shape"),
     ],
 )
 def test_bad_frames_are_rejected_with_reason(data, reason):

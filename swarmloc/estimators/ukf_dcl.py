@@ -297,9 +297,12 @@ class UkfDclNode(Node):
         for i, g in token.groups.items():
             by_gid[tuple(g[:3])].append(i)
         claims = {gid: {j for i in nodes for j in token.groups[i][3:]} for gid, nodes in by_gid.items()}
+        # Only the groups of m and n are touched by the measurement; broken groups elsewhere are
+        # left to the chains that touch them (splitting costs accuracy).
+        touched = {tuple(token.groups[a][:3]) for a in token.key[:2] if a in token.groups}
         splits = []
         for gid, nodes in sorted(by_gid.items()):
-            if claims[gid] != set(nodes):
+            if gid in touched and claims[gid] != set(nodes):
                 # The part's weight is relative to every member list that names one of its
                 # nodes: a node that missed a merge still counts in the merged group's size.
                 cluster = set().union(*(c for c in claims.values() if c & set(nodes)))
