@@ -163,7 +163,7 @@ def run_swarm(sc_arg: str, out: Path | None, seed: int | None, swarm: str, port:
     scenario_file = out / "logs" / "scenario.input.yaml"
     scenario_file.write_text(sc.to_yaml())
 
-    console.print(f"[bold]swarmloc run[/] {sc.name}: {len(sc.world.agents)} agents, {sc.clock.steps} ticks of "
+    console.print(f"[bold]swarmloc run[/] {sc.name}: {len(sc.world.agents)} agents, {sc.clock.steps + 1} ticks (0..{sc.clock.steps}) of "
                   f"{sc.clock.dt:g} s, {sc.clock.mode}, seed {sc.seed}, Zenoh router {endpoint}, swarm '{swarm}'")
     procs = Swarm(out / "logs")
     try:
@@ -171,7 +171,9 @@ def run_swarm(sc_arg: str, out: Path | None, seed: int | None, swarm: str, port:
                                      "--out", str(out), *([] if plots else ["--no-plots"])])
         _wait_listening(port, net)
         if net.poll() is not None:
-            raise fail(f"netsim failed to start (exit code {net.returncode}):\n{procs.tail('netsim')}", 1)
+            # netsim exits 2 for a bad scenario (e.g. a radio parameter), like our own checks.
+            raise fail(f"netsim failed to start (exit code {net.returncode}):\n{procs.tail('netsim')}",
+                       2 if net.returncode == 2 else 1)
         for a in sc.agent_ids:
             procs.agent_args[a] = ["-m", "agents", "agent", "--id", str(a), "--scenario", str(scenario_file), "--swarm", swarm,
                                    "--connect", endpoint, "--state-file", str(out / "logs" / f"agent-{a}.state.npy")]
@@ -567,10 +569,18 @@ def status(swarm: str = SwarmOpt, connect: Optional[list[str]] = ConnectOpt,
         return
     from rich.live import Live
 
+    seen = False
     with Live(console=console, refresh_per_second=4) as live:
         try:
             while True:
-                live.update(_status_view(control("status", {}, swarm, connect)))
+                try:
+                    live.update(_status_view(control("status", {}, swarm, connect)))
+                    seen = True
+                except typer.Exit:
+                    if seen:  # the run ended under our eyes: that is the normal way out
+                        console.print("netsim is gone: the run has ended")
+                        return
+                    raise
                 time.sleep(interval)
         except KeyboardInterrupt:
             pass

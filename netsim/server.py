@@ -74,6 +74,7 @@ class NetsimServer:
         self._new_event = False
         self.pending_faults: list = []
         self.record = RunRecord(self.ids, len(scenario.agent(self.ids[0]).start))
+        self.sim.down.update(self.ids)  # nobody is up until their liveliness token appears
         self.seq = 0
         self.sent_at: dict[tuple[int, int], float] = {}  # (src, seq) -> sender's send time
         self.hop_latency: list[float] = []  # wall s from tx arrival at netsim to rx publish
@@ -147,6 +148,7 @@ class NetsimServer:
         if up:
             # A (re)joining agent starts counting from zero and is waited for from the next tick.
             self.alive.add(aid)
+            self.sim.down.discard(aid)
             self.delivered[aid] = self.received[aid] = 0
             self.done.pop(aid, None)
             self.joined_at[aid] = self.sim.k + 1
@@ -154,6 +156,7 @@ class NetsimServer:
                 log.warning("agent %s joined at tick %d", aid, self.sim.k)
         else:
             self.alive.discard(aid)
+            self.sim.down.add(aid)  # the radio now drops (and NACKs) frames to it as "down"
             log.warning("agent %s left the swarm at tick %d", aid, self.sim.k)
 
     def _on_tx(self, key: str, payload: bytes, stamp) -> None:
@@ -413,7 +416,9 @@ class NetsimServer:
         algorithms = [a for a in ("il", "ukf-dcl", "ukf-ccl") if a in self.sc.estimators or a in self.record.est]
         if self.cfg.out is None:
             return {**metrics(self.record, algorithms), **extra}
-        m = write_run(self.cfg.out, self.sc, self.record, algorithms, extra, plots=self.cfg.plots,
+        # The run directory states the radio with every default filled in.
+        used = self.sc.with_overrides(radio=self.sim.channel.model_dump())
+        m = write_run(self.cfg.out, used, self.record, algorithms, extra, plots=self.cfg.plots,
                       radio=self.sim.radio_arrays())
         return m
 

@@ -53,6 +53,7 @@ class Simulation:
         self.medium = RadioMedium(self.channel, rng["radio"])
         self.loss_seed = int(rng["loss"].integers(2**62))
         self.faults = FaultState(self.ids)
+        self.down: set[int] = set()  # agents whose process is not running (netsim's view)
         self.medium.set_positions(self.world.pos)  # a link table is available before tick 0
         self.timeline = sorted(scenario.faults, key=lambda f: f.at)
         self.k, self.t = -1, 0.0
@@ -145,7 +146,8 @@ class Simulation:
                 del self._inflight[o.uid]
             reason = o.reason
             if o.delivered:
-                reason = self.faults.blocked(tx.src, o.receiver) or self._jammed(o.receiver)
+                reason = ("down" if o.receiver in self.down else None) or self.faults.blocked(tx.src, o.receiver) \
+                    or self._jammed(o.receiver)
                 if reason is None:
                     p = self.faults.extra_loss(tx.src, o.receiver)
                     if p > 0 and self._uniform(tx, o.receiver) < p:
@@ -188,7 +190,7 @@ class Simulation:
     def link_state(self, a: int, b: int) -> tuple[bool, float, str]:
         """(up, distance, reason if down) for a -> b: physics and faults, no random draw."""
         info = self.medium.link(a, b)
-        blocked = self.faults.blocked(a, b) or self._jammed(b)
+        blocked = ("down" if self.down & {a, b} else None) or self.faults.blocked(a, b) or self._jammed(b)
         if blocked:
             return False, info.distance_m, blocked
         return info.up, info.distance_m, "" if info.up else "distance"
