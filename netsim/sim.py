@@ -116,7 +116,7 @@ class Simulation:
         return sorted(out, key=lambda r: (r.t, r.receiver, r.nack is not None))
 
     def offer(self, tx: Tx, t: float) -> list[Rx]:
-        if tx.src not in self.world.pos or (tx.dst is not None and tx.dst not in self.world.pos):
+        if tx.src not in self.world.pos or (tx.dst is not None and (tx.dst not in self.world.pos or tx.dst == tx.src)):
             self.dropped[(tx.src, tx.dst if tx.dst is not None else -1, "unknown")] += 1
             return self._nack(tx, t, "unknown") if tx.dst is not None else []
         receivers = [tx.dst] if tx.dst is not None else [a for a in self.ids if a != tx.src]

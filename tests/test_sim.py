@@ -56,3 +56,11 @@ def test_fault_timeline_applies_before_frames_and_clears_after_duration():
     assert seen[2] == (True, False) and seen[3] == (True, False)  # t = 1.0 and 1.5
     assert seen[4] == (False, False)  # GNSS back after 1 s; the cut has no duration
     assert [f["action"] for f in sim.fault_log] == ["gnss-off", "cut", "gnss-on"]
+
+
+def test_frames_to_self_or_strangers_are_dropped_not_raised():
+    sim = Simulation(S.load("wang2019"))
+    sim.tick()
+    for dst in (1, 99):
+        out = sim.exchange([RadioTx(1, dst, 5, b"x")])
+        assert [r.nack.reason for r in out] == ["unknown"] and out[0].receiver == 1

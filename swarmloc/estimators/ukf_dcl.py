@@ -39,7 +39,7 @@ chain. `epoch` counts commits within the tick: a frame of another epoch or tick 
 from __future__ import annotations
 
 import logging
-from collections import defaultdict
+from collections import defaultdict, deque
 
 import numpy as np
 
@@ -75,6 +75,8 @@ class UkfDclNode(Node):
         self.neighbours: dict[int, np.ndarray] = {}  # snapshot for this tick
         self.held: list[tuple[int, object]] = []  # early frames: (src, msg)
         self.late: list[tuple[int, DclCommit]] = []  # missed commits that may still apply
+        self.applied: deque[DclCommit] = deque(maxlen=16)  # recent state-changing commits, to resend
+        self.resyncs: dict[Key, int] = {}  # resync attempts per chain key (this tick)
         self.stats = {"chains_committed": 0, "measurements_used": 0, "measurements_dropped": 0, "group_splits": 0,
                       "late_commits": 0}
 
@@ -116,6 +118,7 @@ class UkfDclNode(Node):
         self.pending.clear()
         self.known_pending.clear()
         self.retries.clear()
+        self.resyncs.clear()
         x, _, Q = self.model.predict(self.x, odometry_of(sensors))
         self.x = x
         self.row[self.id] = self.row[self.id] + Q
@@ -289,10 +292,12 @@ class UkfDclNode(Node):
             return [Send(token, token.parent[self.id])]
         if self.id != token.key[0]:
             return self.drop("orphan-token", str(token.key))
-        return self._on_commit(self.id, self._decide(token))
+        commit, resync = self._decide(token)
+        return resync + self._on_commit(self.id, commit)
 
-    def _decide(self, token: DclToken) -> DclCommit:
-        """At the measurer, all nodes visited: apply, split the groups first, or drop."""
+    def _decide(self, token: DclToken) -> tuple[DclCommit, list[Send]]:
+        """At the measurer, all nodes visited: apply; or bring nodes that missed a commit up to
+        date and run again; or split the groups first; or drop."""
         by_gid: dict[tuple, list[int]] = defaultdict(list)
         for i, g in token.groups.items():
             by_gid[tuple(g[:3])].append(i)
@@ -300,26 +305,50 @@ class UkfDclNode(Node):
         # Only the groups of m and n are touched by the measurement; broken groups elsewhere are
         # left to the chains that touch them (splitting costs accuracy).
         touched = {tuple(token.groups[a][:3]) for a in token.key[:2] if a in token.groups}
-        splits = []
-        for gid, nodes in sorted(by_gid.items()):
-            if gid in touched and claims[gid] != set(nodes):
+        broken = [(gid, nodes) for gid, nodes in sorted(by_gid.items()) if gid in touched and claims[gid] != set(nodes)]
+        common = dict(k=token.k, epoch=token.epoch, key=token.key, parent=token.parent,
+                      groups=token.groups, pending=token.pending)
+        retry = token.status != CHAIN_UNREACHABLE
+        if broken and retry:
+            resync = self._resync(token, broken)
+            if resync:
+                # Those nodes only missed commits we hold: send them and run the chain again.
+                self.resyncs[tuple(token.key)] = self.resyncs.get(tuple(token.key), 0) + 1
+                return DclCommit(Pz=token.Pz, nu=token.nu, gains={}, merge=[], splits=[], finished=False, **common), resync
+        if broken:
+            splits = []
+            for gid, nodes in broken:
                 # The part's weight is relative to every member list that names one of its
                 # nodes: a node that missed a merge still counts in the merged group's size.
                 cluster = set().union(*(c for c in claims.values() if c & set(nodes)))
                 splits.append([len(cluster), *sorted(nodes)])
-        empty = {}
-        common = dict(k=token.k, epoch=token.epoch, key=token.key, parent=token.parent,
-                      groups=token.groups, pending=token.pending)
-        if splits:
             log.info("node %s: chain %s (k=%d epoch=%d) splits %s; visited %s reporting %s", self.id, token.key,
                      token.k, token.epoch, splits, token.order, token.groups)
-            retry = token.status != CHAIN_UNREACHABLE
-            return DclCommit(Pz=token.Pz, nu=token.nu, gains=empty, merge=[], splits=splits, finished=not retry, **common)
+            return DclCommit(Pz=token.Pz, nu=token.nu, gains={}, merge=[], splits=splits, finished=not retry, **common), []
         if token.status != CHAIN_OK:
-            return DclCommit(Pz=token.Pz, nu=token.nu, gains=empty, merge=[], splits=[], finished=True, **common)
+            return DclCommit(Pz=token.Pz, nu=token.nu, gains={}, merge=[], splits=[], finished=True, **common), []
         m, n, _ = token.key
         merge = sorted(set(token.groups[m][3:]) | set(token.groups[n][3:]))
-        return DclCommit(Pz=token.Pz, nu=token.nu, gains=token.gains, merge=merge, splits=[], finished=True, **common)
+        return DclCommit(Pz=token.Pz, nu=token.nu, gains=token.gains, merge=merge, splits=[], finished=True, **common), []
+
+    def _resync(self, token: DclToken, broken) -> list[Send]:
+        """Commits to resend so every node of the broken groups reaches our group id, or [] if
+        some node's state is not one we can bring forward (then the groups must split)."""
+        if self.resyncs.get(tuple(token.key), 0) >= 2 or tuple(self.gid) not in {gid for gid, _ in broken}:
+            return []
+        out = []
+        for gid, nodes in broken:
+            if list(gid) == self.gid:
+                continue
+            for j in nodes:
+                if j == self.id:
+                    continue  # our own report is old (a late commit came meanwhile): just run again
+                behind = [c for c in self.applied if j in c.groups and list(c.groups[j][:3]) == list(gid)]
+                if not behind:
+                    return []
+                start = self.applied.index(behind[0])
+                out += [Send(c, j) for c in list(self.applied)[start:] if j in c.groups]
+        return out
 
     def link_failed(self, dst: int, msg) -> list[Send]:
         """A unicast did not arrive. Try the same hop again a few times (a lossy link often
@@ -368,9 +397,11 @@ class UkfDclNode(Node):
         prediction since commutes with it (F = I), so applying it now is exact. If not, an
         earlier commit we also missed may still arrive and make it apply: keep it a while.
         Either way it goes on down the tree: whether it applies is each node's own question."""
-        if msg.groups.get(self.id) is None or msg.parent.get(self.id, msg.key[0]) != src:
+        if msg.groups.get(self.id) is None:
             return self.drop("stale", f"commit k={msg.k} epoch={msg.epoch}")
-        out = [Send(msg, c) for c, p in sorted(msg.parent.items()) if p == self.id]
+        # Down the tree once, when it comes from our parent; a measurer's resend is for us alone.
+        tree = msg.parent.get(self.id, msg.key[0]) == src
+        out = [Send(msg, c) for c, p in sorted(msg.parent.items()) if p == self.id] if tree else []
         if msg.k < self.k - LATE_TICKS or len(self.late) >= 64:
             return out + self.drop("stale", f"commit k={msg.k} epoch={msg.epoch}")
         self.late.append((src, msg))
@@ -385,7 +416,7 @@ class UkfDclNode(Node):
                 src, msg = item
                 if list(msg.groups[self.id][:3]) == self.gid:
                     self.late.remove(item)
-                    if self._apply_commit(src, msg):
+                    if self._apply_commit(src, msg, route=False):
                         self.stats["late_commits"] += 1
                         changed = True
                         break
@@ -394,11 +425,12 @@ class UkfDclNode(Node):
             self.drop("stale", f"late commit k={item[1].k} epoch={item[1].epoch} never applicable")
         return []
 
-    def _apply_commit(self, src: int, msg: DclCommit) -> bool:
-        """Check a commit and apply it to the state; False (and a counted drop) if unfit."""
+    def _apply_commit(self, src: int, msg: DclCommit, route: bool = True) -> bool:
+        """Check a commit and apply it to the state; False (and a counted drop) if unfit.
+        route=False for late commits: any holder may resend one, the group id check decides."""
         key = tuple(msg.key)
         d, dz = self.model.state_dim, self.meas.dim
-        if msg.parent.get(self.id, key[0]) != src or (self.id != key[0] and self.id not in msg.parent):
+        if (route and msg.parent.get(self.id, key[0]) != src) or (self.id != key[0] and self.id not in msg.parent):
             self.drop("misrouted", f"commit {key}")
             return False
         if msg.gains and self.id not in msg.gains:
@@ -432,4 +464,6 @@ class UkfDclNode(Node):
             return False
         self.x, self.row, self.gid, self.members = x, row, gid, members
         self.stats["chains_committed"] += 1
+        if msg.gains or msg.splits:
+            self.applied.append(msg)
         return True
