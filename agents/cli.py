@@ -543,12 +543,13 @@ def _status_view(s: dict):
     agents = Table("agent", "alive", "responsive", "last tick done", title="agents")
     for aid, a in s["agents"].items():
         agents.add_row(aid, "yes" if a["alive"] else "[red]no[/]", "yes" if a["responsive"] else "[red]no[/]", str(a["done_k"]))
-    links = Table("link", "up", "distance (m)", "SNR (dB)", "model PDR", "delivered", "dropped", "delivery ratio",
-                  "last heard (s)", title="links")
+    links = Table("link", "up", "distance (m)", "SNR (dB)", "last SINR (dB)", "model PDR", "delivered", "dropped",
+                  "delivery ratio", "last heard (s)", title="links")
     for l in s["links"]:
         fmt = lambda v, f="{:.2f}": "-" if v is None or v != v else f.format(v)
         links.add_row(f"{l['a']}-{l['b']}", "up" if l["up"] else f"[red]down ({l['reason']})[/]", f"{l['distance']:.1f}",
-                      fmt(l["snr_db"], "{:.1f}"), fmt(l["pdr_model"]), str(l["delivered"]), str(l["dropped"]),
+                      fmt(l["snr_db"], "{:.1f}"), fmt(l.get("sinr_db"), "{:.1f}"), fmt(l["pdr_model"]),
+                      str(l["delivered"]), str(l["dropped"]),
                       fmt(l["delivery_ratio"]), fmt(l["last_heard"], "{:.1f}"))
     active = ", ".join(f"#{f['id']} {f['action']} {json.dumps(f['args'])}" for f in s["faults"]) or "none"
     return Group(head, agents, links, f"faults: {active}")

@@ -63,6 +63,7 @@ class Simulation:
         self.delivered: Counter[tuple[int, int]] = Counter()
         self.dropped: Counter[tuple[int, int, str]] = Counter()
         self.last_heard: dict[tuple[int, int], float] = {}
+        self.last_sinr: dict[tuple[int, int], float] = {}  # SINR of the last frame src -> receiver
         self.radio_log: list[tuple[int, int, int, int, str]] = []  # (k, src, receiver, size, drop reason or "")
         self.link_log: list[tuple] = []  # per tick and pair: (k, a, b, snr_db, up, delivered, dropped)
 
@@ -145,6 +146,8 @@ class Simulation:
             if entry[1] == 0:
                 del self._inflight[o.uid]
             reason = o.reason
+            if np.isfinite(o.sinr_db):
+                self.last_sinr[(tx.src, o.receiver)] = float(o.sinr_db)
             if o.delivered:
                 reason = ("down" if o.receiver in self.down else None) or self.faults.blocked(tx.src, o.receiver) \
                     or self._jammed(o.receiver)
@@ -207,8 +210,10 @@ class Simulation:
                 dlv = self.delivered[(a, b)] + self.delivered[(b, a)]
                 total = sent[(a, b)] + sent[(b, a)]
                 heard = [self.last_heard[d] for d in ((a, b), (b, a)) if d in self.last_heard]
+                sinr = [self.last_sinr[d] for d in ((a, b), (b, a)) if d in self.last_sinr]
                 rows.append({"a": a, "b": b, "up": up_ab and up_ba, "distance": dist,
                              "reason": reason_ab or reason_ba, "snr_db": float(info.snr_db),
+                             "sinr_db": min(sinr) if sinr else None,
                              "pdr_model": float(info.pdr), "delivered": dlv, "dropped": total - dlv,
                              "delivery_ratio": dlv / total if total else None,
                              "last_heard": max(heard) if heard else None})

@@ -226,7 +226,8 @@ class Event:
 @message("link")
 class LinkMsg:
     """One pair's link as netsim sees it: physics (SNR without interference, modelled delivery
-    ratio), faults (up, reason) and what actually happened (counts, last frame heard)."""
+    ratio), faults (up, reason) and what actually happened (SINR of the last frame with the
+    interference it met, counts, last frame heard)."""
 
     a: Id
     b: Id
@@ -234,6 +235,7 @@ class LinkMsg:
     distance: Annotated[float, Float(finite=False)]
     reason: Annotated[str, Str(32)]
     snr_db: Annotated[float, Float(finite=False)]
+    sinr_db: Annotated[float | None, Optional(Float())]  # of the last frame heard (worse direction)
     pdr_model: Annotated[float, Float(finite=False)]
     delivered: Annotated[int, Int(0)]
     dropped: Annotated[int, Int(0)]
