@@ -41,6 +41,10 @@ def test_realtime_lossy_partitioned_monte_carlo(cli, tmp_path):
     n = RUNS * 4
     hi = chi2.ppf(0.975, 2 * n) / n
     per_tick = np.stack(nees).mean(axis=(0, 2))
+    lo = chi2.ppf(0.025, 2 * n) / n
+    print(f"real time, {RUNS} runs: mean NEES {per_tick.mean():.2f}, ticks below {lo:.2f} / inside / above {hi:.2f}: "
+          f"{(per_tick < lo).mean():.0%} / {((per_tick >= lo) & (per_tick <= hi)).mean():.0%} / {(per_tick > hi).mean():.0%}; "
+          f"error UKF-DCL {np.mean(err['ukf-dcl']):.2f} m, IL {np.mean(err['il']):.2f} m")
     assert (per_tick > hi).mean() <= 0.05, f"NEES above {hi:.2f} at {(per_tick > hi).mean():.0%} of ticks"
     assert np.mean(err["ukf-dcl"]) < np.mean(err["il"]), err
     assert min(used) > 10  # chains did complete in real time
