@@ -113,30 +113,27 @@ class NetsimServer:
 
     # ---------------------------------------------------------------- inputs
 
+    def _from_agent(self, key: str, payload: bytes, cls):
+        """(agent id, message) of a known agent's frame on its own key, or None (logged)."""
+        try:
+            aid = wire.Keys.agent_of(key)
+            body = wire.decode(payload, expect=(cls,)).body
+        except (wire.WireError, ValueError) as exc:
+            log.warning("bad %s on %s: %s", cls.TYPE, key, exc)
+            return None
+        return (aid, body) if aid in self.delivered else None
+
     def _handle(self, item) -> None:
         kind, key, payload, stamp = item
         if kind == "tx":
             self._on_tx(key, payload, stamp)
-        elif kind == "done":
-            try:
-                env = wire.decode(payload, expect=(Done,))
-                aid = wire.Keys.agent_of(key)
-            except (wire.WireError, ValueError) as exc:
-                log.warning("bad done on %s: %s", key, exc)
-                return
-            if aid in self.delivered:
-                self.done[aid] = env.body
-                self.unresponsive.discard(aid)
-        elif kind == "est":
-            try:
-                env = wire.decode(payload, expect=(EstimateMsg,))
-                aid = wire.Keys.agent_of(key)
-            except (wire.WireError, ValueError) as exc:
-                log.warning("bad estimate on %s: %s", key, exc)
-                return
-            e = env.body
-            if aid in self.delivered:
-                self.record.add_estimate(e.algorithm, aid, Estimate(e.k, e.mean, e.cov))
+        elif kind == "done" and (got := self._from_agent(key, payload, Done)):
+            aid, done = got
+            self.done[aid] = done
+            self.unresponsive.discard(aid)
+        elif kind == "est" and (got := self._from_agent(key, payload, EstimateMsg)):
+            aid, e = got
+            self.record.add_estimate(e.algorithm, aid, Estimate(e.k, e.mean, e.cov))
         elif kind == "alive":
             self._on_alive(wire.Keys.agent_of(key), payload == zenoh.SampleKind.PUT)
         elif kind == "ctl":
