@@ -314,7 +314,11 @@ def hop_stats(metrics: dict) -> dict:
         raise RuntimeError("no agent reported hop latencies (agent_stats empty)")
     return {"median_us": statistics.median(s["hop_us_median"] for s in st),
             "p99_us": max(s["hop_us_p99"] for s in st), "hops": sum(s["hops"] for s in st),
-            "frames": metrics["radio"]["delivered"], "ticks_per_s": metrics.get("ticks_per_s")}
+            "frames": metrics["radio"]["delivered"], "ticks_per_s": metrics.get("ticks_per_s"),
+            # netsim's own share: its Zenoh callback receiving the frame -> its put to the receivers
+            # (recorded only where routing happens on arrival, i.e. lockstep without rounds).
+            "netsim_median_us": metrics["radio"].get("netsim_hop_us_median"),
+            "netsim_p99_us": metrics["radio"].get("netsim_hop_us_p99")}
 
 
 def frame_sizes(run_dir: Path) -> list[int]:
@@ -391,11 +395,11 @@ def cpu_model() -> str:
 
 
 def code_version() -> str:
-    """Commit of the project code measured, and whether netsim/swarmloc/agents differ from it."""
+    """Last commit touching netsim/, swarmloc/, agents/, and whether the working tree differs from it."""
     repo = Path(__file__).resolve().parent.parent
     try:
-        head = subprocess.run(["git", "-C", str(repo), "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                              timeout=10).stdout.strip()
+        head = subprocess.run(["git", "-C", str(repo), "log", "-1", "--format=%h", "--", "netsim", "swarmloc", "agents"],
+                              capture_output=True, text=True, timeout=10).stdout.strip()
         dirty = subprocess.run(["git", "-C", str(repo), "status", "--porcelain", "--", "netsim", "swarmloc", "agents"],
                                capture_output=True, text=True, timeout=10).stdout.strip()
     except (OSError, subprocess.SubprocessError):
@@ -425,6 +429,7 @@ def main() -> None:
     p.add_argument("--interval", type=float, default=0.002, help="s between frames on the direct paths")
     a = p.parse_args()
     load_start = os.getloadavg()[0]
+    code_start = code_version()
     procs = Procs()
 
     def on_term(*_):
@@ -466,11 +471,13 @@ def main() -> None:
                 print(f"WARNING: processes still alive after cleanup: {left}", file=sys.stderr)
 
     med = {k: {f: statistics.median(r[f] for r in rs) for f in ("median_us", "p99_us")} for k, rs in rows.items() if rs}
+    internal = {k: [(r["netsim_median_us"], r["netsim_p99_us"]) for r in rs if r.get("netsim_median_us") is not None]
+                for k, rs in rows.items()}
     load_end = os.getloadavg()[0]
     argv = " ".join(sys.argv[1:])
     print(f"## Latency netsim adds to a radio hop ({date.today()})\n")
     print(f"Machine: {os.cpu_count()} vCPU ({cpu_model()}), Python {platform.python_version()}, Linux {platform.release()}. "
-          f"Code: {code_version()}. Command: `.venv/bin/python benchmarks/bench_latency.py{(' ' + argv) if argv else ''}`. "
+          f"Code (last commit to netsim/, swarmloc/, agents/): {code_start if code_start == code_version() else code_start + ' at start, ' + code_version() + ' at end'}. Command: `.venv/bin/python benchmarks/bench_latency.py{(' ' + argv) if argv else ''}`. "
           f"1-min load average {load_start:.1f} at start, {load_end:.1f} at end (other work shares the machine).\n")
     print(f"netsim runs: {a.agents} agents (UKF-DCL), unit disk with latency_s 0, dt {a.dt} s, {a.duration:g} s per real-time "
           f"run at speed 1; hop = median of the agents' medians, p99 = largest agent p99. Direct paths: frames of "
@@ -489,6 +496,10 @@ def main() -> None:
         d_med = med[key]["median_us"] - med[base]["median_us"]
         d_p99 = med[key]["p99_us"] - med[base]["p99_us"]
         print(f"- added by netsim ({key} minus {base}): median {d_med:+,.0f} us, p99 {d_p99:+,.0f} us")
+    for key, vals in internal.items():
+        if vals:
+            print(f"- netsim internal ({key}; its callback -> its put, per repetition median / p99): "
+                  + ", ".join(f"{m:,.0f} / {q:,.0f} us" for m, q in vals))
 
 
 if __name__ == "__main__":

@@ -104,11 +104,11 @@ def cpu_model() -> str:
 
 
 def code_version() -> str:
-    """Commit of the project code measured, and whether netsim/swarmloc/agents differ from it."""
+    """Last commit touching netsim/, swarmloc/, agents/, and whether the working tree differs from it."""
     repo = Path(__file__).resolve().parent.parent
     try:
-        head = subprocess.run(["git", "-C", str(repo), "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                              timeout=10).stdout.strip()
+        head = subprocess.run(["git", "-C", str(repo), "log", "-1", "--format=%h", "--", "netsim", "swarmloc", "agents"],
+                              capture_output=True, text=True, timeout=10).stdout.strip()
         dirty = subprocess.run(["git", "-C", str(repo), "status", "--porcelain", "--", "netsim", "swarmloc", "agents"],
                                capture_output=True, text=True, timeout=10).stdout.strip()
     except (OSError, subprocess.SubprocessError):
@@ -159,6 +159,7 @@ def main() -> None:
     p.add_argument("--plot", type=Path, default=None, help="write the scaling plot here (PNG)")
     a = p.parse_args()
     load_start = os.getloadavg()[0]
+    code_start = code_version()
     sizes = [int(v) for v in a.agents.split(",")]
     runs: list[dict] = []
     for rep in range(a.repeat):  # repetitions outermost: every configuration is measured side by side, in turn
@@ -193,7 +194,7 @@ def main() -> None:
     print(f"## Radio routing throughput, pure Simulation ({date.today()})\n")
     print(f"Machine: {os.cpu_count()} vCPU ({cpu_model()}), Python {platform.python_version()}, "
           f"numpy {np.__version__}, Linux {platform.release()}. "
-          f"Code: {code_version()}. Command: `.venv/bin/python benchmarks/bench_radio.py{(' ' + argv) if argv else ''}`. "
+          f"Code (last commit to netsim/, swarmloc/, agents/): {code_start if code_start == code_version() else code_start + ' at start, ' + code_version() + ' at end'}. Command: `.venv/bin/python benchmarks/bench_radio.py{(' ' + argv) if argv else ''}`. "
           f"1-min load average {load_start:.1f} at start, {load_end:.1f} at end (other work shares the machine).\n")
     print(f"{FRAME_BYTES} B broadcast per agent per tick, agents uniform in a {SQUARE_M:.0f} m square (seed 1), "
           f"medians of {a.repeat} repetitions; {WARMUP_TICKS} warm-up ticks not counted.\n")
