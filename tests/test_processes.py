@@ -194,9 +194,10 @@ def test_ctrl_c_stops_every_process(cli, tmp_path):
     run = cli.start_run(str(path), tmp_path / "run")
     cli.wait_tick(30, run)
     assert len(swarm_pids(cli.swarm)) >= 5
+    assert run.poll() is None
     run.send_signal(signal.SIGINT)
     stdout, stderr = run.communicate(timeout=60)
-    assert run.returncode == 130
+    assert run.returncode == 130, f"exit {run.returncode}\n{stdout[-2000:]}\n{stderr[-2000:]}"
     assert "interrupted" in stderr
     wait_gone(cli.swarm)
 
