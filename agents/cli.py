@@ -144,6 +144,10 @@ class Swarm:
                 p.wait()
 
 
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
 def run_swarm(sc_arg: str, out: Path | None, seed: int | None, swarm: str, port: int | None, plots: bool) -> Path:
     sc = load_scenario(sc_arg)
     if seed is not None:
@@ -166,6 +170,10 @@ def run_swarm(sc_arg: str, out: Path | None, seed: int | None, swarm: str, port:
     console.print(f"[bold]swarmloc run[/] {sc.name}: {len(sc.world.agents)} agents, {sc.clock.steps + 1} ticks (0..{sc.clock.steps}) of "
                   f"{sc.clock.dt:g} s, {sc.clock.mode}, seed {sc.seed}, Zenoh router {endpoint}, swarm '{swarm}'")
     procs = Swarm(out / "logs")
+    # Ctrl-C (and a plain kill) must stop the whole swarm, even when we were started with
+    # SIGINT ignored (a background job of a non-interactive shell, as under CI).
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, _interrupt)
     try:
         net = procs.spawn("netsim", ["-m", "netsim", str(scenario_file), "--swarm", swarm, "--listen", endpoint,
                                      "--out", str(out), *([] if plots else ["--no-plots"])])

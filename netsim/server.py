@@ -361,20 +361,17 @@ class NetsimServer:
 
     def _realtime_tick(self) -> None:
         k = self._start_tick()
-        t_next = (k + 1) * self.sc.clock.dt
+        t_next = (k + 1) * self.sc.clock.dt  # the last tick lasts dt too, so its frames land
         while True:
             now = self._now()
             self._deliver_all(self.sim.advance(now))
-            if now >= t_next or k == self.sim.steps:
+            if now >= t_next:
                 break
             event = self.sim.next_event_time()
             wake = min(t_next, event if event is not None else t_next)
             # Wake early when a new frame enters the radio: its delivery may come before `wake`.
             self._new_event = False
             self._pump(lambda: self._new_event, max(0.0, (wake - now) / self.sc.clock.speed))
-        if k == self.sim.steps:  # let the last tick's frames land before stopping
-            self._pump(lambda: False, 0.2)
-            self._deliver_all(self.sim.advance(float("inf")))
         self._end_tick(k)
 
     # ---------------------------------------------------------------- the end

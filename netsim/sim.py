@@ -61,6 +61,7 @@ class Simulation:
         self._uid = 0
         self._inflight: dict[int, list] = {}  # uid -> [frame, outcomes still to come]
         self.delivered: Counter[tuple[int, int]] = Counter()
+        self.attempts: Counter[tuple[int, int]] = Counter()  # frames src -> receiver, whatever their fate
         self.dropped: Counter[tuple[int, int, str]] = Counter()
         self.last_heard: dict[tuple[int, int], float] = {}
         self.last_sinr: dict[tuple[int, int], float] = {}  # SINR of the last frame src -> receiver
@@ -156,6 +157,7 @@ class Simulation:
                     if p > 0 and self._uniform(tx, o.receiver) < p:
                         reason = "loss"
             if reason is None:
+                self.attempts[(tx.src, o.receiver)] += 1
                 self.delivered[(tx.src, o.receiver)] += 1
                 self.last_heard[(tx.src, o.receiver)] = o.t
                 self.radio_log.append((self.k, tx.src, o.receiver, len(tx.data), ""))
@@ -181,6 +183,7 @@ class Simulation:
         return None
 
     def _drop(self, tx: Tx, receiver: int, reason: str) -> None:
+        self.attempts[(tx.src, receiver)] += 1
         self.dropped[(tx.src, receiver, reason)] += 1
         self.radio_log.append((self.k, tx.src, receiver, len(tx.data), reason))
 
@@ -205,10 +208,8 @@ class Simulation:
                 info = self.medium.link(a, b)
                 up_ab, dist, reason_ab = self.link_state(a, b)
                 up_ba, _, reason_ba = self.link_state(b, a)
-                sent = {d: self.delivered[d] + sum(n for (s, r, _), n in self.dropped.items() if (s, r) == d)
-                        for d in ((a, b), (b, a))}
                 dlv = self.delivered[(a, b)] + self.delivered[(b, a)]
-                total = sent[(a, b)] + sent[(b, a)]
+                total = self.attempts[(a, b)] + self.attempts[(b, a)]
                 heard = [self.last_heard[d] for d in ((a, b), (b, a)) if d in self.last_heard]
                 sinr = [self.last_sinr[d] for d in ((a, b), (b, a)) if d in self.last_sinr]
                 rows.append({"a": a, "b": b, "up": up_ab and up_ba, "distance": dist,
