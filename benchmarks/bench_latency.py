@@ -45,6 +45,7 @@ import tempfile
 import time
 from datetime import date
 from pathlib import Path
+from machine import code_version, cpu_model  # benchmarks/machine.py
 
 HERE = Path(__file__).resolve()
 PY = sys.executable
@@ -382,29 +383,6 @@ def run_direct(procs: Procs, kind: str, tmp: Path, tag: str, count: int, size: i
 
 
 # --------------------------------------------------------------------------- report
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
-def code_version() -> str:
-    """Last commit touching netsim/, swarmloc/, agents/, and whether the working tree differs from it."""
-    repo = Path(__file__).resolve().parent.parent
-    try:
-        head = subprocess.run(["git", "-C", str(repo), "log", "-1", "--format=%h", "--", "netsim", "swarmloc", "agents"],
-                              capture_output=True, text=True, timeout=10).stdout.strip()
-        dirty = subprocess.run(["git", "-C", str(repo), "status", "--porcelain", "--", "netsim", "swarmloc", "agents"],
-                               capture_output=True, text=True, timeout=10).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-    return f"{head}{' + uncommitted changes' if dirty else ''}" if head else "unknown"
 
 
 PATHS = [

@@ -25,11 +25,11 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 import argparse
 import platform
 import statistics
-import subprocess
 import sys
 import time
 from datetime import date
 from pathlib import Path
+from machine import code_version, cpu_model  # benchmarks/machine.py
 
 import numpy as np
 
@@ -91,29 +91,6 @@ def run_one(n: int, model: str, ticks: int) -> dict:
     return {"n": n, "model": model, "ticks": done, "frames": frames, "receptions": receptions,
             "delivered": delivered, "tick_s": tick_s, "exch_s": exch_s,
             "drops": dict(sim.radio_summary()["dropped"])}
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
-def code_version() -> str:
-    """Last commit touching netsim/, swarmloc/, agents/, and whether the working tree differs from it."""
-    repo = Path(__file__).resolve().parent.parent
-    try:
-        head = subprocess.run(["git", "-C", str(repo), "log", "-1", "--format=%h", "--", "netsim", "swarmloc", "agents"],
-                              capture_output=True, text=True, timeout=10).stdout.strip()
-        dirty = subprocess.run(["git", "-C", str(repo), "status", "--porcelain", "--", "netsim", "swarmloc", "agents"],
-                               capture_output=True, text=True, timeout=10).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-    return f"{head}{' + uncommitted changes' if dirty else ''}" if head else "unknown"
 
 
 def plot(summary: list[dict], path: Path) -> None:

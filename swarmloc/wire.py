@@ -19,7 +19,7 @@ import math
 import struct
 import typing
 from dataclasses import dataclass
-from typing import Annotated, Any, ClassVar
+from typing import Any, ClassVar
 
 import msgpack
 import numpy as np

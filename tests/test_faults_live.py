@@ -6,7 +6,6 @@ import json
 
 import numpy as np
 import pytest
-import yaml
 
 from conftest import NetsimClient
 from swarmloc import scenario as S

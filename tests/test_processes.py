@@ -4,7 +4,6 @@ import json
 import os
 import signal
 import subprocess
-import threading
 import time
 
 import msgpack
@@ -206,7 +205,6 @@ def test_direct_mode_without_netsim(tmp_path):
     """Deployment shape: agents publish radio frames straight to each other (no netsim); the
     test plays the sensor drivers and a plain Zenoh router. UKF-DCL still equals UKF-CCL."""
     import queue
-    import subprocess
     import sys
 
     from conftest import free_port
