@@ -54,7 +54,7 @@ class World:
         gnss_ok(a) False means agent a's GNSS is out (a fault): its frame carries no fix."""
         self.k += 1
         if self.k == 0:
-            return {a: self._frame(a, OdometryMsg(0.0, 0.0, self.heading_est[a], 0.0, 0.0), []) for a in self.ids}
+            return {a: Sensors(0, 0.0, OdometryMsg(0.0, 0.0, self.heading_est[a], 0.0, 0.0), []) for a in self.ids}
         self.t = self.k * self.dt
         odo_cfg = self.sc.sensors.odometry
         odometry = {}
@@ -76,9 +76,6 @@ class World:
         ranges = self._ranges()
         gnss = self._gnss(gnss_ok)
         return {a: Sensors(self.k, self.t, odometry[a], ranges.get(a, []), gnss.get(a)) for a in self.ids}
-
-    def _frame(self, a, odo, ranges) -> Sensors:
-        return Sensors(self.k, self.t, odo, ranges)
 
     def _gnss(self, gnss_ok) -> dict[int, GnssMsg]:
         cfg = self.sc.sensors.gnss

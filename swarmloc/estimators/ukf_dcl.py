@@ -93,9 +93,6 @@ class UkfDclNode(Node):
         self.row = {self.id: np.array(P, float)}
         self.gid, self.members = [int(k), 2**40, self.id], [self.id]
 
-    def covariance_row(self) -> dict[int, np.ndarray]:
-        return {j: b.copy() for j, b in self.row.items()}
-
     def _group(self) -> list[int]:
         return [*self.gid, *self.members]
 
