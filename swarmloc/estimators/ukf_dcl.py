@@ -290,7 +290,7 @@ class UkfDclNode(Node):
         if self.id != token.key[0]:
             return self.drop("orphan-token", str(token.key))
         commit, resync = self._decide(token)
-        return resync + self._on_commit(self.id, commit)
+        return (resync or []) + self._on_commit(self.id, commit)
 
     def _decide(self, token: DclToken) -> tuple[DclCommit, list[Send]]:
         """At the measurer, all nodes visited: apply; or bring nodes that missed a commit up to
@@ -308,7 +308,7 @@ class UkfDclNode(Node):
         retry = token.status != CHAIN_UNREACHABLE
         if broken and retry:
             resync = self._resync(token, broken)
-            if resync:
+            if resync is not None:
                 # Those nodes only missed commits we hold: send them and run the chain again.
                 self.resyncs[tuple(token.key)] = self.resyncs.get(tuple(token.key), 0) + 1
                 return DclCommit(Pz=token.Pz, nu=token.nu, gains={}, merge=[], splits=[], finished=False, **common), resync
@@ -328,11 +328,12 @@ class UkfDclNode(Node):
         merge = sorted(set(token.groups[m][3:]) | set(token.groups[n][3:]))
         return DclCommit(Pz=token.Pz, nu=token.nu, gains=token.gains, merge=merge, splits=[], finished=True, **common), []
 
-    def _resync(self, token: DclToken, broken) -> list[Send]:
-        """Commits to resend so every node of the broken groups reaches our group id, or [] if
-        some node's state is not one we can bring forward (then the groups must split)."""
+    def _resync(self, token: DclToken, broken) -> list[Send] | None:
+        """Commits to resend so every node of the broken groups reaches our group id (none if
+        only our own report was behind), or None if some node's state is not one we can bring
+        forward (then the groups must split)."""
         if self.resyncs.get(tuple(token.key), 0) >= 2 or tuple(self.gid) not in {gid for gid, _ in broken}:
-            return []
+            return None
         out = []
         for gid, nodes in broken:
             if list(gid) == self.gid:
@@ -342,7 +343,7 @@ class UkfDclNode(Node):
                     continue  # our own report is old (a late commit came meanwhile): just run again
                 behind = [c for c in self.applied if j in c.groups and list(c.groups[j][:3]) == list(gid)]
                 if not behind:
-                    return []
+                    return None
                 start = self.applied.index(behind[0])
                 out += [Send(c, j) for c in list(self.applied)[start:] if j in c.groups]
         return out
