@@ -415,17 +415,25 @@ def inject_restore(a: int = A, b: int = B, swarm: str = SwarmOpt, connect: Optio
     inject({"action": "restore", "link": [a, b]}, swarm, connect, None)
 
 
-@inject_app.command("radio-off")
-def inject_radio_off(node: int = N, duration: Optional[float] = ForOpt, swarm: str = SwarmOpt,
-                     connect: Optional[list[str]] = ConnectOpt):
-    """Switch a node's radio off: it neither sends nor receives."""
-    inject({"action": "radio-off", "node": node}, swarm, connect, duration)
+def _node_fault(action: str, doc: str, clears: bool):
+    """An `inject ACTION NODE` command; faults that clear something take no --for."""
+    if clears:
+        def cmd(node: int = N, swarm: str = SwarmOpt, connect: Optional[list[str]] = ConnectOpt):
+            inject({"action": action, "node": node}, swarm, connect, None)
+    else:
+        def cmd(node: int = N, duration: Optional[float] = ForOpt, swarm: str = SwarmOpt,
+                connect: Optional[list[str]] = ConnectOpt):
+            inject({"action": action, "node": node}, swarm, connect, duration)
+    cmd.__doc__ = doc
+    inject_app.command(action)(cmd)
 
 
-@inject_app.command("radio-on")
-def inject_radio_on(node: int = N, swarm: str = SwarmOpt, connect: Optional[list[str]] = ConnectOpt):
-    """Switch a node's radio back on."""
-    inject({"action": "radio-on", "node": node}, swarm, connect, None)
+_node_fault("radio-off", "Switch a node's radio off: it neither sends nor receives.", clears=False)
+_node_fault("radio-on", "Switch a node's radio back on.", clears=True)
+_node_fault("gnss-off", "GNSS outage on a node: its fixes stop.", clears=False)
+_node_fault("gnss-on", "End a GNSS outage.", clears=True)
+_node_fault("kill", "Kill an agent process (with --for, `swarmloc run` restarts it afterwards).", clears=False)
+_node_fault("restart", "Restart a killed agent process.", clears=True)
 
 
 @inject_app.command("partition")
@@ -489,32 +497,6 @@ def inject_jammer(x: float = typer.Argument(..., help="position x (m)"), y: floa
 def inject_jammer_off(name: str = typer.Option("j1", "--name"), swarm: str = SwarmOpt, connect: Optional[list[str]] = ConnectOpt):
     """Switch a jammer off."""
     inject({"action": "jammer-off", "name": name}, swarm, connect, None)
-
-
-@inject_app.command("gnss-off")
-def inject_gnss_off(node: int = N, duration: Optional[float] = ForOpt, swarm: str = SwarmOpt,
-                    connect: Optional[list[str]] = ConnectOpt):
-    """GNSS outage on a node: its fixes stop."""
-    inject({"action": "gnss-off", "node": node}, swarm, connect, duration)
-
-
-@inject_app.command("gnss-on")
-def inject_gnss_on(node: int = N, swarm: str = SwarmOpt, connect: Optional[list[str]] = ConnectOpt):
-    """End a GNSS outage."""
-    inject({"action": "gnss-on", "node": node}, swarm, connect, None)
-
-
-@inject_app.command("kill")
-def inject_kill(node: int = N, duration: Optional[float] = ForOpt, swarm: str = SwarmOpt,
-                connect: Optional[list[str]] = ConnectOpt):
-    """Kill an agent process (with --for, `swarmloc run` restarts it afterwards)."""
-    inject({"action": "kill", "node": node}, swarm, connect, duration)
-
-
-@inject_app.command("restart")
-def inject_restart(node: int = N, swarm: str = SwarmOpt, connect: Optional[list[str]] = ConnectOpt):
-    """Restart a killed agent process."""
-    inject({"action": "restart", "node": node}, swarm, connect, None)
 
 
 @app.command()
