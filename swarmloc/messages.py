@@ -100,26 +100,35 @@ class Done:
 # --------------------------------------------------------------------------- radio payloads
 
 
+# How many state-changing commits of each measurer a UKF-DCL node has applied (a version
+# vector, zero entries left out). Two nodes with equal versions hold equal copies of every
+# cross-covariance between them.
+VersionMap = MapOf(Int(0, MAX_ID), Int(1, 2**40))
+Version = Annotated[dict, VersionMap]
+
+
 @message("beacon")
 class Beacon:
-    """Periodic hello: who I am and where I think I am (neighbour discovery)."""
+    """Periodic hello: who I am, where I think I am (neighbour discovery) and, for UKF-DCL,
+    my version, so a neighbour that is ahead can be asked for the commits I missed."""
 
     k: Tick
     position: Vec
+    version: Version
 
 
-# A correlation group as seen by one node: [gid0, gid1, gid2, member, member, ...]. Every
-# member of a group holds the same gid and members; cross-covariances outside it are zero.
-Groups = Annotated[dict, MapOf(Int(0, MAX_ID), ListOf(Int(0, 2**40), max_len=3 + 1024))]
 IdList = Annotated[list, ListOf(Int(0, MAX_ID))]
 
-# Token status: what happened to the measurement on the way.
-CHAIN_OK, CHAIN_UNREACHABLE, CHAIN_REFUSED = 0, 1, 2
+# Token status: what happened to the measurement on the way. VERSION: m and n had applied
+# different commits, so the pair's covariance is not known to both alike; the chain runs empty.
+CHAIN_OK, CHAIN_UNREACHABLE, CHAIN_REFUSED, CHAIN_VERSION = 0, 1, 2, 3
 
 
 @message("dcl.start")
 class DclStart:
-    """UKF-DCL, measurer m -> measured n: the measurement and m's side of the pair."""
+    """UKF-DCL, measurer m -> measured n: the measurement and m's side of the pair: its mean,
+    its whole covariance row (so n can form every gain), its version and whether it is an
+    orphan (a node whose cross-covariances were lost, see docs/ukf-dcl.md)."""
 
     k: Tick
     epoch: Annotated[int, Int(0)]
@@ -127,8 +136,9 @@ class DclStart:
     z: Vec
     R: SqMat
     x_m: Vec
-    P_mm: SqMat
-    group_m: Annotated[list, ListOf(Int(0, 2**40), max_len=3 + 1024)]
+    row_m: Blocks
+    version: Version
+    orphan: Annotated[bool, Bool()]
     pending: Annotated[list, ListOf(ChainKey)]
 
 
@@ -137,16 +147,16 @@ class DclToken:
     """UKF-DCL location information travelling the chain (depth first, with backtracking).
 
     L is the lower Cholesky factor of the (m, n) covariance block (A11, A21, A22), Y the
-    sigma-point term with Pxz_i = [P_im P_in] L^-T Y, so any node forms its update weight from
-    its own row alone (eq. 20). Gains accumulate as nodes join; nothing is applied until commit.
-    Each node also adds its correlation group, so the measurer can tell whether the chain
-    reached every node its update touches.
+    sigma-point term with Pxz_i = [P_im P_in] L^-T Y (eq. 20). n forms the gain of every node
+    correlated with m or n from the two rows (`gains`); the nodes the token visits add their
+    version (`versions`) and, if they are orphans, their id (`orphans`), so the measurer can
+    tell who can take part. Nothing is applied until the commit.
     """
 
     k: Tick
     epoch: Annotated[int, Int(0)]
     key: Annotated[list, ChainKey]
-    status: Annotated[int, Int(0, 2)]
+    status: Annotated[int, Int(0, 3)]
     L: SqMat
     Y: Mat
     Pz: SqMat
@@ -154,35 +164,57 @@ class DclToken:
     order: IdList
     parent: Annotated[dict, MapOf(Int(0, MAX_ID), Int(0, MAX_ID))]
     gains: Blocks
-    groups: Groups
+    versions: Annotated[dict, MapOf(Int(0, MAX_ID), VersionMap)]
+    orphans: IdList
     pending: Annotated[list, ListOf(ChainKey)]
 
 
 @message("dcl.commit")
 class DclCommit:
-    """UKF-DCL commit, flooded down the chain's tree from the measurer.
+    """UKF-DCL commit, flooded down the chain's tree from the measurer and replayed to nodes
+    that missed it (`dcl.log`).
 
-    Either applies the measurement (gains non-empty; the groups of m and n merge into `merge`),
-    or splits groups the chain could not reach whole (`splits`: [group size, part members...]
-    per part; each part's covariance block is scaled by size/len(part) and decorrelated from
-    the rest), or does nothing but advance the epoch. `finished` says whether the measurement
-    is done (applied or dropped) or will be retried in the next epoch. `groups` repeats what
-    each node reported to the chain, so a node the commit reaches late can tell whether its
-    state is still the one the gains were computed for.
+    A commit with `seq` > 0 changes state: it is measurer m's `seq`-th such commit, computed at
+    version `version` (m's, which every participant shared), and every node applies it once, in
+    an order that respects `version` (its causal history). It either applies the measurement
+    (`gains` for every node correlated with m or n; `participants` update their mean and own
+    block, everyone else only the cross-covariances with the participants), or removes orphans
+    (`removed`: [group size, orphan id] pairs). A commit with `seq` = 0 changes nothing but the
+    chain's epoch. `finished` says whether the measurement is done (applied or dropped) or will
+    be retried in the next epoch.
     """
 
     k: Tick
     epoch: Annotated[int, Int(0)]
     key: Annotated[list, ChainKey]
+    seq: Annotated[int, Int(0, 2**40)]
+    version: Version
+    L: SqMat
+    Y: Mat
     Pz: SqMat
     nu: Vec
     parent: Annotated[dict, MapOf(Int(0, MAX_ID), Int(0, MAX_ID))]
     gains: Blocks
-    merge: IdList
-    splits: Annotated[list, ListOf(ListOf(Int(0, MAX_ID), max_len=1025))]
+    participants: IdList
+    removed: Annotated[list, ListOf(ListOf(Int(0, MAX_ID), length=2))]
     finished: Annotated[bool, Bool()]
-    groups: Groups
     pending: Annotated[list, ListOf(ChainKey)]
+
+
+@message("dcl.sync")
+class DclSync:
+    """UKF-DCL: "send me the commits I lack"; `version` is the asker's."""
+
+    k: Tick
+    version: Version
+
+
+@message("dcl.log")
+class DclLog:
+    """UKF-DCL: commits the receiver lacks, oldest first (an answer to dcl.sync)."""
+
+    k: Tick
+    commits: Annotated[list, ListOf(Nested(DclCommit), max_len=64)]
 
 
 @message("radio.nack")

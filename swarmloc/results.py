@@ -122,9 +122,9 @@ def compute_references(scenario, record: RunRecord, which=("il", "ukf-ccl")) -> 
                 node.step(frames[a])
                 record.add_estimate("il", a, node.estimate())
     if "ukf-ccl" in which:
-        est = scenario.estimation
-        x0 = {a: np.array(scenario.agent(a).start, float) for a in record.ids}
-        ccl = CentralizedUKF(x0, np.eye(record.d) * est.initial_std**2, scenario.agent(record.ids[0]).model, est.spread)
+        x0 = {a: scenario.prior(a)[0] for a in record.ids}
+        P0 = scenario.prior(record.ids[0])[1]
+        ccl = CentralizedUKF(x0, P0, scenario.agent(record.ids[0]).model, scenario.estimation.spread)
         for frames in record.sensors:
             ccl.step(frames)
             for a in record.ids:

@@ -80,16 +80,9 @@ class InProcessRunner:
 
 
 def make_nodes(algorithm: str, scenario, ids: Iterable[int] | None = None) -> dict[int, Node]:
-    """One node per agent with the scenario's known start and initial uncertainty."""
+    """One node per agent with the scenario's prior (Scenario.prior)."""
     from swarmloc.estimators import NODE_TYPES
 
     cls = NODE_TYPES[algorithm]
-    est = scenario.estimation
-    nodes = {}
-    for a in ids or scenario.agent_ids:
-        spec = scenario.agent(a)
-        d = len(spec.start)
-        P0 = np.eye(d) * est.initial_std**2
-        kwargs = {"spread": est.spread} if algorithm == "ukf-dcl" else {}
-        nodes[a] = cls(a, np.array(spec.start, float), P0, spec.model, **kwargs)
-    return nodes
+    kwargs = {"spread": scenario.estimation.spread} if algorithm == "ukf-dcl" else {}
+    return {a: cls(a, *scenario.prior(a), scenario.agent(a).model, **kwargs) for a in ids or scenario.agent_ids}

@@ -12,11 +12,14 @@ from importlib import resources
 from pathlib import Path
 from typing import Annotated, Literal, Union
 
+import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from swarmloc.faults import ACTIONS, Fault, nodes_named
 from swarmloc.models import MOTION_MODELS
+
+PRIOR_STREAM = 0x9A10  # keeps the prior's draws apart from netsim's world streams
 
 SCENARIO_VERSION = 1
 
@@ -118,6 +121,9 @@ RADIO_MODELS = ("unit-disk", "log-distance")
 
 class Estimation(_Strict):
     initial_std: float = Field(0.1, gt=0, description="std of the known initial position (m)")
+    initial_error: bool = Field(True, description="draw each platform's initial estimate from N(start, "
+                                "initial_std^2), as the prior claims (false: start exactly at the truth, "
+                                "which makes NEES read low until the process noise dominates)")
     spread: float | None = Field(None, gt=0, description="unscented transform spread n + lambda; default: "
                                  "twice the state dimension (no negative sigma weight)")
 
@@ -170,6 +176,16 @@ class Scenario(_Strict):
 
     def agent(self, aid: int) -> AgentSpec:
         return next(a for a in self.world.agents if a.id == aid)
+
+    def prior(self, aid: int) -> tuple[np.ndarray, np.ndarray]:
+        """Platform aid's initial estimate and covariance. The error is drawn from its own
+        seeded stream, so every process (agent, in-process runner, references) gets the same."""
+        est, start = self.estimation, np.array(self.agent(aid).start, float)
+        P0 = np.eye(len(start)) * est.initial_std**2
+        if not est.initial_error:
+            return start, P0
+        rng = np.random.default_rng([self.seed, PRIOR_STREAM, aid])
+        return start + est.initial_std * rng.standard_normal(len(start)), P0
 
     def with_overrides(self, **changes) -> "Scenario":
         """A validated copy with dotted-path overrides, e.g. {"sensors.range.probability": 0.05}."""

@@ -8,10 +8,15 @@ from swarmloc.messages import Sensors
 from swarmloc.runner import InProcessRunner, make_nodes
 
 
+def centralized(sc):
+    """UKF-CCL from the scenario's prior, the reference every distributed run is compared with."""
+    return CentralizedUKF({a: sc.prior(a)[0] for a in sc.agent_ids}, sc.prior(sc.agent_ids[0])[1],
+                          spread=sc.estimation.spread)
+
+
 def ccl_without(sc, sensors, skip):
     """UKF-CCL means (T, N, d) over a recorded sensor stream, leaving out the ranges skip(k, m, n) names."""
-    x0 = {a: np.array(sc.agent(a).start, float) for a in sc.agent_ids}
-    ccl = CentralizedUKF(x0, np.eye(2) * sc.estimation.initial_std**2, spread=sc.estimation.spread)
+    ccl = centralized(sc)
     means = []
     for frames in sensors:
         kept = {a: Sensors(f.k, f.t, f.odometry, [r for r in f.ranges if not skip(f.k, a, r.target)]) for a, f in frames.items()}

@@ -12,7 +12,7 @@ import pytest
 import zenoh
 
 from conftest import swarm_pids
-from helpers import ccl_without, in_process
+from helpers import ccl_without, centralized, in_process
 from swarmloc import scenario as S
 from swarmloc import wire
 from swarmloc.messages import Beacon, DclToken, Reply
@@ -121,7 +121,7 @@ def garbage_frames(rng):
     yield with_body(L=arr(nan))
     yield with_body(L=arr(np.full((4, 4), np.inf)))
     yield with_body(L=arr(np.eye(3)))  # decodes, wrong shape for this model: the node drops it
-    yield wire.encode(Beacon(5, np.zeros(3)), 3, 1)  # a 3D position in a 2D swarm
+    yield wire.encode(Beacon(5, np.zeros(3), {}), 3, 1)  # a 3D position in a 2D swarm
     yield b"\x92" + rng.bytes(wire.MAX_FRAME_BYTES + 10)
 
 
@@ -209,7 +209,6 @@ def test_direct_mode_without_netsim(tmp_path):
 
     from conftest import free_port
     from netsim.world import World
-    from swarmloc.estimators import CentralizedUKF
 
     sc = S.load("wang2019").with_overrides(**{"clock.duration": 15.0, "sensors.range.probability": 0.8})
     port, swarm = free_port(), "direct" + str(os.getpid())
@@ -231,8 +230,7 @@ def test_direct_mode_without_netsim(tmp_path):
             alive.get(timeout=30)
         pubs = {a: router.declare_publisher(keys.sensors(a), congestion_control=zenoh.CongestionControl.BLOCK) for a in sc.agent_ids}
         world = World(sc)
-        x0 = {a: np.array(sc.agent(a).start, float) for a in sc.agent_ids}
-        ccl = CentralizedUKF(x0, np.eye(2) * sc.estimation.initial_std**2, spread=sc.estimation.spread)
+        ccl = centralized(sc)
         latest = {}
         for _ in range(sc.clock.steps + 1):
             frames = world.step()

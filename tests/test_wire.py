@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 
 from swarmloc import wire
-from swarmloc.messages import Beacon, DclToken, Done, EstimateMsg, OdometryMsg, RangeMsg, Sensors
+from swarmloc.messages import Beacon, DclCommit, DclLog, DclToken, Done, EstimateMsg, OdometryMsg, RangeMsg, Sensors
 
 
 def token(**over):
     fields = dict(k=3, epoch=0, key=[1, 2, 0], status=0, L=np.eye(4), Y=np.ones((4, 1)), Pz=np.eye(1), nu=np.zeros(1),
-                  order=[1, 2], parent={2: 1}, gains={1: np.zeros((2, 1))}, groups={1: [0, 0, 1, 1], 2: [0, 0, 2, 2]},
-                  pending=[[1, 2, 0]])
+                  order=[1, 2], parent={2: 1}, gains={1: np.zeros((2, 1))}, versions={1: {1: 4, 2: 3}, 2: {1: 4, 2: 3}},
+                  orphans=[], pending=[[1, 2, 0]])
     fields.update(over)
     return DclToken(**fields)
 
@@ -33,6 +33,14 @@ def test_nested_messages_round_trip():
     assert wire.decode(wire.encode(s, 0, 1)).body == s
 
 
+def test_commit_log_round_trips_with_versions():
+    t = token()
+    commit = DclCommit(3, 0, [1, 2, 0], 5, {1: 4, 2: 3}, t.L, t.Y, t.Pz, t.nu, {2: 1}, t.gains, [1], [], True, [])
+    body = wire.decode(wire.encode(DclLog(9, [commit, commit]), 2, 1, 1)).body
+    assert len(body.commits) == 2 and body.commits[1].version == {1: 4, 2: 3} and body.commits[0].seq == 5
+    assert np.array_equal(body.commits[0].gains[1], t.gains[1])
+
+
 def _envelope(body, type_="beacon"):
     return msgpack.packb({"v": 1, "type": type_, "src": 1, "seq": 1, "dst": None, "body": body}, use_bin_type=True)
 
@@ -47,18 +55,19 @@ def _arr(a):
         (b"\x00\xff\x13garbage", "not MessagePack"),
         (msgpack.packb([1, 2, 3]), "not an envelope"),
         (msgpack.packb({"v": 2, "type": "beacon", "src": 1, "seq": 1, "body": {}}), "schema version"),
-        (_envelope({"k": 1, "position": _arr([0, 0])}, "no.such.type"), "unknown message type"),
-        (_envelope({"k": "one", "position": _arr([0, 0])}), "body.k: expected int"),
-        (_envelope({"k": True, "position": _arr([0, 0])}), "body.k: expected int"),
-        (_envelope({"k": 1, "position": _arr([0, math.nan])}), "body.position: non-finite"),
-        (_envelope({"k": 1, "position": _arr([0, math.inf])}), "body.position: non-finite"),
-        (_envelope({"k": 1, "position": wire.Array(2).encode(np.eye(2))}), "body.position: bad shape"),
-        (_envelope({"k": 1, "position": {"dtype": "<i8", "shape": [2], "data": b"\0" * 16}}), "dtype"),
-        (_envelope({"k": 1, "position": {"dtype": "<f8", "shape": [3], "data": b"\0" * 16}}), "data length"),
-        (_envelope({"k": 1}), "missing fields"),
-        (_envelope({"k": 1, "position": _arr([0, 0]), "extra": 1}), "unknown fields"),
+        (_envelope({"k": 1, "version": {}, "position": _arr([0, 0])}, "no.such.type"), "unknown message type"),
+        (_envelope({"k": "one", "version": {}, "position": _arr([0, 0])}), "body.k: expected int"),
+        (_envelope({"k": True, "version": {}, "position": _arr([0, 0])}), "body.k: expected int"),
+        (_envelope({"k": 1, "version": {}, "position": _arr([0, math.nan])}), "body.position: non-finite"),
+        (_envelope({"k": 1, "version": {}, "position": _arr([0, math.inf])}), "body.position: non-finite"),
+        (_envelope({"k": 1, "version": {}, "position": wire.Array(2).encode(np.eye(2))}), "body.position: bad shape"),
+        (_envelope({"k": 1, "version": {}, "position": {"dtype": "<i8", "shape": [2], "data": b"\0" * 16}}), "dtype"),
+        (_envelope({"k": 1, "version": {}, "position": {"dtype": "<f8", "shape": [3], "data": b"\0" * 16}}), "data length"),
+        (_envelope({"k": 1, "version": {}}), "missing fields"),
+        (_envelope({"k": 1, "version": {3: 0}, "position": _arr([0, 0])}), r"body.version\[3\]: 0 out of range"),
+        (_envelope({"k": 1, "version": {}, "position": _arr([0, 0]), "extra": 1}), "unknown fields"),
         (b"\x91" * (wire.MAX_FRAME_BYTES + 1), "exceeds"),
-        (_envelope({"k": 1, "position": {"dtype": "<f8", "shape": [2**63], "data": b""}}), "bad shape"),
+        (_envelope({"k": 1, "version": {}, "position": {"dtype": "<f8", "shape": [2**63], "data": b""}}), "bad shape"),
     ],
 )
 def test_bad_frames_are_rejected_with_reason(data, reason):
@@ -69,7 +78,7 @@ def test_bad_frames_are_rejected_with_reason(data, reason):
 def test_oversized_array_rejected_even_inside_frame_limit():
     big = {"dtype": "<f8", "shape": [5000], "data": b"\0" * 8 * 5000}
     with pytest.raises(wire.WireError, match="bad shape|exceed"):
-        wire.decode(_envelope({"k": 1, "position": big}))
+        wire.decode(_envelope({"k": 1, "version": {}, "position": big}))
 
 
 def test_unexpected_type_rejected_where_not_expected():

@@ -1,58 +1,63 @@
-"""UKF-DCL (Wang et al. 2019) as a sans-I/O node, extended to reach the whole connected swarm.
+"""UKF-DCL (Wang et al. 2019) as a sans-I/O node, extended to reach the whole connected swarm
+and to stay exact when the radio splits it.
 
-Each node keeps its own mean x_i and its row of the joint covariance, P_ij for every j in its
-correlation group (outside the group the blocks are exactly zero). One relative measurement
-z_mn runs one chain (docs/ukf-dcl.md has the picture):
+Each node keeps its own mean x_i and its row of the joint covariance, P_ij for every j it is
+correlated with (absent blocks are exactly zero). One relative measurement z_mn runs one chain
+(docs/ukf-dcl.md has the picture):
 
-1. start   m -> n: the measurement, x_m, P_mm and m's group. n now holds the (m, n) pair,
-           forms the lower Cholesky factor L of its 2x2-block covariance (A11, A21, A22 of
-           eq. 15-16, after the eq. 17 reordering), runs the unscented transform on
-           [x_m; x_n] and gets z_bar, Pz and Y, with Pxz_i = A_i Y for every node i (eq. 20).
-2. token   depth first through the radio graph: each node it reaches for the first time
-           solves its A_i = [P_im P_in] L^-T from its own row, adds its gain K_i and its group.
-           The next hop is the nearest unvisited neighbour (the paper's serial path); a node
-           with none sends the token back to the node it came from. Nothing is applied yet.
-3. commit  when the token is back at m with nobody left to visit, every gain is known and m
-           floods a commit down the chain's tree: every node applies x_i += K_i nu and
-           P_ij -= K_i Pz K_j^T for all j (eq. 21-23, minus per the erratum). Every node
-           applies the same gains, so each row equals the centralized P.
+1. start   m -> n: the measurement, x_m and m's row. n holds both rows, forms the lower
+           Cholesky factor L of the pair's 2x2-block covariance (A11, A21, A22 of eq. 15-16,
+           after the eq. 17 reordering), runs the unscented transform on [x_m; x_n] and forms
+           the gain K_j = [P_jm P_jn] L^-T Y Pz^-1 (eq. 20) of every node j correlated with m
+           or n (T, the touched set).
+2. token   depth first through the radio graph (nearest unvisited neighbour, the paper's serial
+           path; back to the parent when stuck); each node adds its version. Nothing is applied.
+3. commit  back at m with nobody left to visit, m floods a commit down the chain's tree.
 
-Correlation groups keep this exact-or-conservative when the radio splits the swarm. A
-measurement touches exactly the nodes correlated with m or n, i.e. the groups of m and n; if
-the chain reached every member of every group it met, the update is exact and the two groups
-merge. If some member was out of reach, the chain commits a split instead: the reachable part
-p of group G scales its covariance block by |G|/|p| and drops its cross-covariances with the
-rest. Each part of G does the same when it next meets the split, and the fractions |p|/|G|
-sum to one, so the block-diagonal result bounds the true joint covariance (covariance
-intersection with weights |p|/|G|). The measurement then runs again on the split groups.
-Copies of a cross-covariance can therefore never go out of step: either both holders update
-it in the same commit, or both drop it.
+Versions make this exact under loss and partitions. A node's version counts the
+state-changing commits it has applied per measurer; a commit is applied once by every node,
+in an order consistent with the versions it was computed at, so two nodes with equal versions
+hold equal copies of every cross-covariance. The participants of a commit are the nodes the
+token reached whose version equals m's; they apply the full update. Every other node of T
+(out of reach, or behind) is an outsider: with gain zero (a Schmidt, or consider, update) its
+mean and own block stay, and only its cross-covariances with the participants change, by
+-K_a Pz g^T with g its gain formula evaluated on its own row when it applies the commit. Commits
+of parts that were apart touch disjoint participants, so as matrices they commute and each
+side can apply the other's later (dcl.sync / dcl.log, asked for when a beacon shows a newer
+version): the joint covariance after a healed partition is exactly that of the filter that
+was run, with no inflation. Orphans, nodes that lost their cross-covariances (restart from a
+checkpoint, a commit they took part in but can no longer apply), are removed from the others'
+rows with a covariance-intersection bound when a chain meets them.
 
 Several measurements in one tick run as successive chains in key order (m, n, q). Every
 measurer starts its chain at once; a node drops any token whose key is larger than one of its
 own pending keys, so only the smallest chain of a connected part can complete. Its token
 gathers every pending key it meets; after the commit the owner of the next key starts the next
-chain. `epoch` counts commits within the tick: a frame of another epoch or tick is stale
-(dropped) or early (held until its epoch comes), so no frame ever mixes two versions of P.
+chain. `epoch` counts commits within the tick: a chain frame of another epoch or tick is stale
+(dropped) or early (held until its epoch comes). A node that reported its version to the
+current epoch's chain applies nothing else until that chain's commit (or the next tick).
 """
 
 from __future__ import annotations
 
 import logging
-from collections import defaultdict, deque
+from collections import deque
 
 import numpy as np
 
 from swarmloc import kalman
-from swarmloc.messages import (CHAIN_OK, CHAIN_REFUSED, CHAIN_UNREACHABLE, Beacon, DclCommit, DclStart, DclToken,
-                               Sensors)
+from swarmloc.messages import (CHAIN_OK, CHAIN_REFUSED, CHAIN_UNREACHABLE, CHAIN_VERSION, Beacon, DclCommit, DclLog,
+                               DclStart, DclSync, DclToken, Sensors)
 from swarmloc.models import Range
 from swarmloc.node import Estimate, Node, Send, odometry_of
 
 log = logging.getLogger(__name__)
 Key = tuple[int, int, int]
 NEIGHBOUR_TICKS = 3
-LATE_TICKS = 2  # how long a late commit is kept in case an earlier missed one arrives
+VERSION_RETRIES = 2  # chain reruns when m and n are at different versions
+LOG_COMMITS = 2048  # applied commits kept to replay to nodes that missed them
+LOG_BATCH = 16  # commits per dcl.log frame
+GIVE_UP_TICKS = 40  # a commit whose history never arrives makes the node an orphan after this
 
 
 class UkfDclNode(Node):
@@ -61,24 +66,26 @@ class UkfDclNode(Node):
     def __init__(self, aid, x0, P0, model="planar-speed-heading", spread: float | None = None, max_retries: int = 3):
         super().__init__(aid, x0, P0, model)
         self.max_retries = max_retries
-        self.retries: dict[tuple, int] = {}  # (k, epoch, message type, dst) -> resends so far
+        self.retries: dict[tuple, int] = {}  # (message type, dst, k, epoch) -> resends so far
         self.ut = kalman.UnscentedTransform.for_pair(self.model.state_dim, spread)
         self.meas = Range(self.model)
         self.row: dict[int, np.ndarray] = {self.id: self.P}
         del self.P  # the own block lives in self.row; one copy only
-        self.gid: list[int] = [0, 0, self.id]  # every node starts alone, uncorrelated
-        self.members: list[int] = [self.id]
+        self.version: dict[int, int] = {}  # measurer -> its state-changing commits applied here
+        self.orphan, self.orphan_scaled = False, True
+        self.log: deque[DclCommit] = deque(maxlen=LOG_COMMITS)  # applied, in order
+        self.waiting: dict[tuple[int, int], DclCommit] = {}  # (measurer, seq) -> not yet applicable
+        self.busy: tuple[int, int] | None = None  # (k, epoch) of the chain we reported our version to
+        self.asked: set[int] = set()  # neighbours asked for commits this tick
         self.epoch = 0
         self.pending: dict[Key, tuple[np.ndarray, np.ndarray]] = {}  # own measurements not yet finished
         self.known_pending: set[Key] = set()  # keys of this tick seen from others
         self.beacons: dict[int, dict[int, np.ndarray]] = {}  # j -> {tick: position}
         self.neighbours: dict[int, np.ndarray] = {}  # snapshot for this tick
         self.held: list[tuple[int, object]] = []  # early frames: (src, msg)
-        self.late: list[tuple[int, DclCommit]] = []  # missed commits that may still apply
-        self.applied: deque[DclCommit] = deque(maxlen=16)  # recent state-changing commits, to resend
-        self.resyncs: dict[Key, int] = {}  # resync attempts per chain key (this tick)
-        self.stats = {"chains_committed": 0, "measurements_used": 0, "measurements_dropped": 0, "group_splits": 0,
-                      "late_commits": 0}
+        self.reruns: dict[Key, int] = {}  # version reruns per chain key (this tick)
+        self.stats = {"chains_committed": 0, "measurements_used": 0, "measurements_dropped": 0,
+                      "outsider_commits": 0, "commits_replayed": 0, "orphaned": 0, "orphans_removed": 0}
 
     # ------------------------------------------------------------------ state
 
@@ -86,15 +93,13 @@ class UkfDclNode(Node):
         return Estimate(self.k, self.x.copy(), self.row[self.id].copy())
 
     def resume(self, k, x, P) -> None:
-        """Continue from a checkpoint: own mean and covariance only. Cross-covariances are
-        gone, so the node rejoins as a group of its own under a fresh id; its former group
-        splits from it (conservatively) when a chain next meets it."""
+        """Continue from a checkpoint: own mean and covariance only. The cross-covariances are
+        gone, so the node is an orphan: the others drop theirs with it (covariance
+        intersection) when a chain next meets it, and it catches up on versions meanwhile."""
         self.k, self.x = int(k), np.array(x, float)
         self.row = {self.id: np.array(P, float)}
-        self.gid, self.members = [int(k), 2**40, self.id], [self.id]
-
-    def _group(self) -> list[int]:
-        return [*self.gid, *self.members]
+        self.version, self.waiting, self.busy = {}, {}, None
+        self.orphan, self.orphan_scaled = True, False
 
     def _block(self, j: int) -> np.ndarray:
         b = self.row.get(j)
@@ -111,19 +116,26 @@ class UkfDclNode(Node):
         gap = self.missed_motion(sensors)
         if gap is not None:
             self.row[self.id] = self.row[self.id] + gap
-        self.k, self.epoch = sensors.k, 0
+        self.k, self.epoch, self.busy = sensors.k, 0, None
         self.pending.clear()
         self.known_pending.clear()
         self.retries.clear()
-        self.resyncs.clear()
+        self.reruns.clear()
+        self.asked.clear()
+        # F = I: prediction leaves every cross-covariance as it is, so it commutes with commits
+        # applied late (their outsider part reads only cross-covariances).
         x, _, Q = self.model.predict(self.x, odometry_of(sensors))
         self.x = x
         self.row[self.id] = self.row[self.id] + Q
+        self._apply_ready()
+        stuck = [c for c in self.waiting.values() if c.k < self.k - GIVE_UP_TICKS]
+        if stuck:
+            self._make_orphan(f"{len(stuck)} commits whose history never arrived")
 
         # Neighbours are those heard in the last NEIGHBOUR_TICKS ticks before this one (their
         # latest position): in lockstep all those beacons have arrived by now, so every node
         # routes on the same snapshot whatever the delivery order; the window rides out a lost
-        # beacon or two on a lossy radio (a stale neighbour costs a NACK, a missing one a split).
+        # beacon or two on a lossy radio (a stale neighbour costs a NACK, a missing one a detour).
         lo = self.k - NEIGHBOUR_TICKS
         for j in list(self.beacons):
             self.beacons[j] = {t: p for t, p in self.beacons[j].items() if t >= lo}
@@ -139,7 +151,7 @@ class UkfDclNode(Node):
                 continue
             self.pending[(self.id, r.target, q)] = (np.array([r.range]), np.array([[r.std**2]]))
 
-        out: list[Send] = [Send(Beacon(self.k, self.model.position(self.x).copy()), None)]
+        out: list[Send] = [Send(Beacon(self.k, self.model.position(self.x).copy(), dict(self.version)), None)]
         out += self._start_next()
         out += self._release_held()
         return out
@@ -156,8 +168,9 @@ class UkfDclNode(Node):
         if key != self._min_pending():
             return []
         z, R = self.pending[key]
-        msg = DclStart(self.k, self.epoch, list(key), z, R, self.x.copy(), self.row[self.id].copy(), self._group(),
-                       [list(k) for k in sorted(self.pending)])
+        self.busy = (self.k, self.epoch)
+        msg = DclStart(self.k, self.epoch, list(key), z, R, self.x.copy(), dict(self.row), dict(self.version),
+                       self.orphan, [list(k) for k in sorted(self.pending)])
         return [Send(msg, key[1])]
 
     # ------------------------------------------------------------------ radio
@@ -166,8 +179,16 @@ class UkfDclNode(Node):
         if isinstance(msg, Beacon):
             if msg.position.shape == (self.model.position_dim,) and src != self.id:
                 self.beacons.setdefault(src, {})[msg.k] = msg.position
-                return []
+                return self._on_version(src, msg.version)
             return self.drop("shape", "beacon")
+        if isinstance(msg, DclSync):
+            return self._on_sync(src, msg)
+        if isinstance(msg, DclLog):
+            self.stats["commits_replayed"] += len(msg.commits)
+            for c in msg.commits:
+                if self._valid_commit(c):
+                    self._deliver(c)
+            return []
         if not isinstance(msg, (DclStart, DclToken, DclCommit)):
             return self.drop("unexpected-type", type(msg).__name__)
         if msg.k < self.k or (msg.k == self.k and msg.epoch < self.epoch):
@@ -212,13 +233,20 @@ class UkfDclNode(Node):
 
     # ------------------------------------------------------------------ chain steps
 
-    def _token(self, key, status, order, parent, groups, pending, L=None, Y=None, Pz=None, nu=None, gains=None):
+    def _report(self) -> tuple[dict, list[int]]:
+        """What this node adds to a chain: its version, and its id if it is an orphan. Until
+        this epoch's commit (or the next tick) it applies nothing else, so the report stays true."""
+        self.busy = (self.k, self.epoch)
+        return dict(self.version), ([self.id] if self.orphan else [])
+
+    def _token(self, key, status, order, parent, versions, orphans, pending, L=None, Y=None, Pz=None, nu=None,
+               gains=None):
         d, dz = self.model.state_dim, self.meas.dim
         return DclToken(
             self.k, self.epoch, list(key), status,
             np.eye(2 * d) if L is None else L, np.zeros((2 * d, dz)) if Y is None else Y,
             np.eye(dz) if Pz is None else Pz, np.zeros(dz) if nu is None else nu,
-            order, parent, gains or {}, groups, [list(k) for k in sorted(pending)],
+            order, parent, gains or {}, versions, orphans, [list(k) for k in sorted(pending)],
         )
 
     def _on_start(self, src: int, msg: DclStart) -> list[Send]:
@@ -227,53 +255,58 @@ class UkfDclNode(Node):
         d, dz = self.model.state_dim, self.meas.dim
         if n != self.id or m != src:
             return self.drop("misrouted", f"start {key}")
-        if msg.x_m.shape != (d,) or msg.P_mm.shape != (d, d) or msg.z.shape != (dz,) or msg.R.shape != (dz, dz):
+        if (msg.x_m.shape != (d,) or msg.z.shape != (dz,) or msg.R.shape != (dz, dz) or m not in msg.row_m
+                or any(b.shape != (d, d) for b in msg.row_m.values())):
             return self.drop("shape", "start")
-        if len(msg.group_m) < 4 or m not in msg.group_m[3:]:
-            return self.drop("invalid", "start group")
         self.known_pending.update(tuple(k) for k in msg.pending)
         if self._preempted(key):
             return self.drop("preempted", str(key))
 
         pending = {tuple(k) for k in msg.pending} | set(self.pending)
-        groups = {m: msg.group_m, n: self._group()}
+        version, orphans = self._report()
+        head = ([m, n], {n: m}, {m: msg.version, n: version}, ([m] if msg.orphan else []) + orphans, pending)
+        if head[3]:
+            return self._forward(self._token(key, CHAIN_REFUSED, *head))  # m removes the orphans first
+        if msg.version != self.version:
+            out = []
+            if self._behind(msg.version) and m not in self.asked:
+                self.asked.add(m)
+                out.append(Send(DclSync(self.k, dict(self.version)), m))
+            return out + self._forward(self._token(key, CHAIN_VERSION, *head))
         P_nm = self._block(m)
-        P_sub = np.block([[msg.P_mm, P_nm.T], [P_nm, self.row[self.id]]])
+        P_sub = np.block([[msg.row_m[m], P_nm.T], [P_nm, self.row[self.id]]])
         try:
             L = np.linalg.cholesky(P_sub)
         except np.linalg.LinAlgError:
-            # Cannot happen with consistent groups; if it does, refuse rather than compute
-            # garbage, and let the chain run empty so the keys it preempted get their turn.
+            # Cannot happen with equal versions; if it does, refuse rather than compute garbage,
+            # and let the chain run empty so the keys it preempted get their turn.
             self.drop("not-positive-definite", str(key))
-            return self._forward(self._token(key, CHAIN_REFUSED, [m, n], {n: m}, groups, pending))
+            return self._forward(self._token(key, CHAIN_REFUSED, *head))
         z_bar, Pzz, Y = self.ut.measurement_moments(np.concatenate([msg.x_m, self.x]), L, self.meas.h_joint)
         Pz = Pzz + msg.R
-        gains = {m: kalman.gain(L[:d] @ Y, Pz), n: kalman.gain(L[d:] @ Y, Pz)}
-        token = self._token(key, CHAIN_OK, [m, n], {n: m}, groups, pending, L, Y, Pz, msg.z - z_bar, gains)
-        return self._forward(token)
+        # Every node correlated with m or n gets a gain, from m's and n's copies of its
+        # cross-covariances (equal to its own at equal versions): eq. 20 for the whole set at once.
+        touched = sorted(set(msg.row_m) | set(self.row))
+        zero = np.zeros((d, d))
+        P_t_mn = np.vstack([np.hstack([msg.row_m.get(j, zero).T, self.row.get(j, zero).T]) for j in touched])
+        K = kalman.gain(kalman.solve_lower(L, P_t_mn.T).T @ Y, Pz)
+        gains = {j: K[i * d:(i + 1) * d] for i, j in enumerate(touched)}
+        return self._forward(self._token(key, CHAIN_OK, *head, L, Y, Pz, msg.z - z_bar, gains))
 
     def _on_token(self, src: int, msg: DclToken) -> list[Send]:
         key = tuple(msg.key)
-        d, dz = self.model.state_dim, self.meas.dim
-        if msg.L.shape != (2 * d, 2 * d) or msg.Y.shape != (2 * d, dz) or msg.Pz.shape != (dz, dz) or msg.nu.shape != (dz,):
+        if not self._valid_transform(msg):
             return self.drop("shape", "token")
-        if any(g.shape != (d, dz) for g in msg.gains.values()) or any(len(g) < 4 for g in msg.groups.values()):
-            return self.drop("shape", "token gains")
         self.known_pending.update(tuple(k) for k in msg.pending)
         if self._preempted(key):
             return self.drop("preempted", str(key))
         if self.id in msg.order:
             return self._forward(msg)  # backtracking through us
-        gains = dict(msg.gains)
-        if msg.status == CHAIN_OK:
-            m, n, _ = key
-            P_i_mn = np.hstack([self._block(m), self._block(n)])
-            A_i = kalman.solve_lower(msg.L, P_i_mn.T).T
-            gains[self.id] = kalman.gain(A_i @ msg.Y, msg.Pz)
+        version, orphans = self._report()
         pending = {tuple(k) for k in msg.pending} | set(self.pending)
         token = DclToken(
             msg.k, msg.epoch, msg.key, msg.status, msg.L, msg.Y, msg.Pz, msg.nu, msg.order + [self.id],
-            {**msg.parent, self.id: src}, gains, {**msg.groups, self.id: self._group()},
+            {**msg.parent, self.id: src}, msg.gains, {**msg.versions, self.id: version}, msg.orphans + orphans,
             [list(k) for k in sorted(pending)],
         )
         return self._forward(token)
@@ -289,179 +322,273 @@ class UkfDclNode(Node):
             return [Send(token, token.parent[self.id])]
         if self.id != token.key[0]:
             return self.drop("orphan-token", str(token.key))
-        commit, resync = self._decide(token)
-        return (resync or []) + self._on_commit(self.id, commit)
+        commit, extra = self._decide(token)
+        return extra + self._on_commit(self.id, commit)
 
     def _decide(self, token: DclToken) -> tuple[DclCommit, list[Send]]:
-        """At the measurer, all nodes visited: apply; or bring nodes that missed a commit up to
-        date and run again; or split the groups first; or drop."""
-        by_gid: dict[tuple, list[int]] = defaultdict(list)
-        for i, g in token.groups.items():
-            by_gid[tuple(g[:3])].append(i)
-        claims = {gid: {j for i in nodes for j in token.groups[i][3:]} for gid, nodes in by_gid.items()}
-        # Only the groups of m and n are touched by the measurement; broken groups elsewhere are
-        # left to the chains that touch them (splitting costs accuracy).
-        touched = {tuple(token.groups[a][:3]) for a in token.key[:2] if a in token.groups}
-        broken = [(gid, nodes) for gid, nodes in sorted(by_gid.items()) if gid in touched and claims[gid] != set(nodes)]
-        common = dict(k=token.k, epoch=token.epoch, key=token.key, parent=token.parent,
-                      groups=token.groups, pending=token.pending)
-        retry = token.status != CHAIN_UNREACHABLE
-        if broken and retry:
-            resync = self._resync(token, broken)
-            if resync is not None:
-                # Those nodes only missed commits we hold: send them and run the chain again.
-                self.resyncs[tuple(token.key)] = self.resyncs.get(tuple(token.key), 0) + 1
-                return DclCommit(Pz=token.Pz, nu=token.nu, gains={}, merge=[], splits=[], finished=False, **common), resync
-        if broken:
-            splits = []
-            for gid, nodes in broken:
-                # The part's weight is relative to every member list that names one of its
-                # nodes: a node that missed a merge still counts in the merged group's size.
-                cluster = set().union(*(c for c in claims.values() if c & set(nodes)))
-                splits.append([len(cluster), *sorted(nodes)])
-            log.info("node %s: chain %s (k=%d epoch=%d) splits %s; visited %s reporting %s", self.id, token.key,
-                     token.k, token.epoch, splits, token.order, token.groups)
-            return DclCommit(Pz=token.Pz, nu=token.nu, gains={}, merge=[], splits=splits, finished=not retry, **common), []
-        if token.status != CHAIN_OK:
-            return DclCommit(Pz=token.Pz, nu=token.nu, gains={}, merge=[], splits=[], finished=True, **common), []
-        m, n, _ = token.key
-        merge = sorted(set(token.groups[m][3:]) | set(token.groups[n][3:]))
-        return DclCommit(Pz=token.Pz, nu=token.nu, gains=token.gains, merge=merge, splits=[], finished=True, **common), []
-
-    def _resync(self, token: DclToken, broken) -> list[Send] | None:
-        """Commits to resend so every node of the broken groups reaches our group id (none if
-        only our own report was behind), or None if some node's state is not one we can bring
-        forward (then the groups must split)."""
-        if self.resyncs.get(tuple(token.key), 0) >= 2 or tuple(self.gid) not in {gid for gid, _ in broken}:
-            return None
+        """At the measurer, every reachable node visited: remove the orphans the measurement
+        touches and run it again; or run it again after asking n for the commits we lack;
+        or commit it, with the nodes at our version as participants."""
+        key = tuple(token.key)
+        m, n, _ = key
+        common = dict(k=token.k, epoch=token.epoch, key=token.key, L=token.L, Y=token.Y, Pz=token.Pz, nu=token.nu,
+                      parent=token.parent, pending=token.pending)
+        nothing = dict(seq=0, version={}, gains={}, participants=[], removed=[], **common)
+        rerun = token.status != CHAIN_UNREACHABLE and self.reruns.get(key, 0) < VERSION_RETRIES + 1
+        touched = set(token.gains) | set(self.row) | {m, n}
+        removed = sorted(set(token.orphans) & touched)
+        if removed and rerun:
+            self.reruns[key] = self.reruns.get(key, 0) + 1
+            # The orphan's weight: 1/size. Its former group is at most this big (the touched set
+            # or the chain's reach); the holders take (size - r)/size from their own rows.
+            size = max(len(token.gains), len(token.order), len(self.row))
+            log.info("node %s: chain %s removes orphans %s (group size <= %d)", self.id, key, removed, size)
+            return DclCommit(seq=self.version.get(self.id, 0) + 1, version=dict(self.version), gains={},
+                             participants=[], removed=[[size, o] for o in removed], finished=False, **common), []
         out = []
-        for gid, nodes in broken:
-            if list(gid) == self.gid:
-                continue
-            for j in nodes:
-                if j == self.id:
-                    continue  # our own report is old (a late commit came meanwhile): just run again
-                behind = [c for c in self.applied if j in c.groups and list(c.groups[j][:3]) == list(gid)]
-                if not behind:
-                    return None
-                start = self.applied.index(behind[0])
-                out += [Send(c, j) for c in list(self.applied)[start:] if j in c.groups]
-        return out
+        if token.status == CHAIN_VERSION:
+            if self._behind(token.versions.get(n, {})) and n not in self.asked:
+                self.asked.add(n)
+                out.append(Send(DclSync(self.k, dict(self.version)), n))
+            if rerun and self.reruns.get(key, 0) < VERSION_RETRIES:
+                self.reruns[key] = self.reruns.get(key, 0) + 1
+                return DclCommit(finished=False, **nothing), out
+        if token.status != CHAIN_OK:
+            return DclCommit(finished=True, **nothing), out
+        participants = sorted(i for i, v in token.versions.items()
+                              if v == self.version and i in token.gains and i not in token.orphans)
+        return DclCommit(seq=self.version.get(self.id, 0) + 1, version=dict(self.version), gains=token.gains,
+                         participants=participants, removed=[], finished=True, **common), out
 
     def link_failed(self, dst: int, msg) -> list[Send]:
         """A unicast did not arrive. Try the same hop again a few times (a lossy link often
         passes the next frame); then route around it, forgetting that neighbour for the tick."""
+        if isinstance(msg, (DclSync, DclLog)):
+            tries = self.retries.get((msg.TYPE, dst, msg.k, -1), 0)
+            if tries < self.max_retries:
+                self.retries[(msg.TYPE, dst, msg.k, -1)] = tries + 1
+                return [Send(msg, dst)]
+            return self.drop("undeliverable", msg.TYPE)  # the next beacon asks again
         if not isinstance(msg, (DclStart, DclToken, DclCommit)) or (msg.k != self.k and not isinstance(msg, DclCommit)):
             return self.drop("undeliverable", type(msg).__name__)  # a chain step of a tick that is over
-        tries = self.retries.get((msg.k, msg.epoch, msg.TYPE, dst), 0)
-        # A lost commit costs a group split later; a lost token only a detour: try commits harder.
+        tries = self.retries.get((msg.TYPE, dst, msg.k, msg.epoch), 0)
+        # A lost commit costs dst a replay later; a lost token only a detour: try commits harder.
         if tries < self.max_retries * (3 if isinstance(msg, DclCommit) else 1):
-            self.retries[(msg.k, msg.epoch, msg.TYPE, dst)] = tries + 1
+            self.retries[(msg.TYPE, dst, msg.k, msg.epoch)] = tries + 1
             return [Send(msg, dst)]
         self.neighbours.pop(dst, None)
         if isinstance(msg, DclCommit):
-            # dst (and the tree below it) misses this commit. It keeps its old group id, so the
-            # next chain that meets it splits it from those who applied the commit.
+            # dst (and the tree below it) misses this commit; they ask for it (dcl.sync) when a
+            # beacon shows them a newer version.
             return self.drop("commit-undelivered", f"to {dst}")
         if msg.epoch != self.epoch:
             return self.drop("undeliverable", type(msg).__name__)
         if isinstance(msg, DclStart):
             # The measured platform is out of reach: the measurement is lost, but the chain
             # still has to run (empty) so the keys it preempted get their turn.
-            return self._forward(self._token(msg.key, CHAIN_UNREACHABLE, [self.id], {}, {self.id: self._group()},
+            version, orphans = self._report()
+            return self._forward(self._token(msg.key, CHAIN_UNREACHABLE, [self.id], {}, {self.id: version}, orphans,
                                              set(self.pending)))
         if msg.parent.get(self.id) == dst:
             return self.drop("chain-broken", f"parent {dst} unreachable")
         return self._forward(msg)
 
+    # ------------------------------------------------------------------ commits
+
     def _on_commit(self, src: int, msg: DclCommit) -> list[Send]:
+        """This epoch's commit, down the chain's tree: the chain is over here."""
         key = tuple(msg.key)
-        if not self._apply_commit(src, msg):
+        if not self._valid_commit(msg):
             return []
+        if msg.parent.get(self.id, key[0]) != src or (self.id != key[0] and self.id not in msg.parent):
+            return self.drop("misrouted", f"commit {key}")
         self.epoch += 1
+        self.busy = None
         if key in self.pending and msg.finished:
             del self.pending[key]
             self.stats["measurements_used" if msg.gains else "measurements_dropped"] += 1
         self.known_pending = {tuple(k) for k in msg.pending} - ({key} if msg.finished else set())
         out = [Send(msg, c) for c, p in sorted(msg.parent.items()) if p == self.id]
-        out += self._retry_late()
+        self._deliver(msg)
         out += self._start_next()
         out += self._release_held()
         return out
 
     def _late_commit(self, src: int, msg: DclCommit) -> list[Send]:
-        """A commit of an earlier tick or epoch (we moved on before it reached us). If our group
-        id is the one we reported to that chain, nothing has touched our row since and the
-        prediction since commutes with it (F = I), so applying it now is exact. If not, an
-        earlier commit we also missed may still arrive and make it apply: keep it a while.
-        Either way it goes on down the tree: whether it applies is each node's own question."""
-        if msg.groups.get(self.id) is None:
+        """A commit of an earlier tick or epoch: we moved on before it reached us (real time,
+        or an earlier commit was missing). Its state change still applies, in version order.
+        It goes on down the tree once, when it comes from our parent."""
+        if not self._valid_commit(msg):
+            return []
+        if msg.seq == 0 or self._applied(msg) or (msg.key[0], msg.seq) in self.waiting:
             return self.drop("stale", f"commit k={msg.k} epoch={msg.epoch}")
-        # Down the tree once, when it comes from our parent; a measurer's resend is for us alone.
-        tree = msg.parent.get(self.id, msg.key[0]) == src
-        out = [Send(msg, c) for c, p in sorted(msg.parent.items()) if p == self.id] if tree else []
-        if msg.k < self.k - LATE_TICKS or len(self.late) >= 64:
-            return out + self.drop("stale", f"commit k={msg.k} epoch={msg.epoch}")
-        self.late.append((src, msg))
-        return out + self._retry_late()
+        out = [Send(msg, c) for c, p in sorted(msg.parent.items()) if p == self.id] \
+            if msg.parent.get(self.id, msg.key[0]) == src else []
+        self._deliver(msg)
+        return out
 
-    def _retry_late(self) -> list[Send]:
-        """Apply kept late commits whose reported group id is ours now, oldest first."""
-        changed = True
-        while changed:
-            changed = False
-            for item in sorted(self.late, key=lambda sm: (sm[1].k, sm[1].epoch)):
-                src, msg = item
-                if list(msg.groups[self.id][:3]) == self.gid:
-                    self.late.remove(item)
-                    if self._apply_commit(src, msg, route=False):
-                        self.stats["late_commits"] += 1
-                        changed = True
-                        break
-        for item in [sm for sm in self.late if sm[1].k < self.k - LATE_TICKS]:
-            self.late.remove(item)
-            self.drop("stale", f"late commit k={item[1].k} epoch={item[1].epoch} never applicable")
-        return []
-
-    def _apply_commit(self, src: int, msg: DclCommit, route: bool = True) -> bool:
-        """Check a commit and apply it to the state; False (and a counted drop) if unfit.
-        route=False for late commits: any holder may resend one, the group id check decides."""
-        key = tuple(msg.key)
+    def _valid_transform(self, msg: DclToken | DclCommit) -> bool:
+        """Shapes fit this swarm, L is a Cholesky factor (lower, positive diagonal), Pz is
+        positive definite: what the gain formulas need to be well defined."""
         d, dz = self.model.state_dim, self.meas.dim
-        if (route and msg.parent.get(self.id, key[0]) != src) or (self.id != key[0] and self.id not in msg.parent):
-            self.drop("misrouted", f"commit {key}")
-            return False
-        if msg.gains and self.id not in msg.gains:
-            self.drop("misrouted", f"commit {key} without our gain")
-            return False
-        if msg.Pz.shape != (dz, dz) or msg.nu.shape != (dz,) or any(g.shape != (d, dz) for g in msg.gains.values()):
+        return (msg.L.shape == (2 * d, 2 * d) and msg.Y.shape == (2 * d, dz) and msg.Pz.shape == (dz, dz)
+                and msg.nu.shape == (dz,) and all(g.shape == (d, dz) for g in msg.gains.values())
+                and bool(np.all(np.diag(msg.L) > 0)) and not np.triu(msg.L, 1).any()
+                and bool(np.all(np.linalg.eigvalsh((msg.Pz + msg.Pz.T) / 2) > 0)))
+
+    def _valid_commit(self, msg: DclCommit) -> bool:
+        if not self._valid_transform(msg):
             self.drop("shape", "commit")
             return False
-        if any(len(s) < 2 or s[0] < len(s) - 1 for s in msg.splits):
-            self.drop("invalid", "commit splits")
+        if msg.seq and msg.version.get(msg.key[0], 0) != msg.seq - 1:
+            self.drop("invalid", f"commit {msg.key} seq {msg.seq} after version {msg.version}")
             return False
-        row, gid, members = dict(self.row), self.gid, self.members
-        for size, *part in msg.splits:
-            if self.id in part:
-                # Covariance-intersection bound with weight |part|/|G| (module docstring).
-                f = size / len(part)
-                row = {j: f * b for j, b in row.items() if j in part}
-                gid, members = [msg.k, msg.epoch, min(part)], sorted(part)
-                self.stats["group_splits"] += 1
-        x = self.x
-        if msg.gains:
-            K_i = msg.gains[self.id]
-            for j, K_j in msg.gains.items():
-                row[j] = row.get(j, np.zeros((d, d))) - kalman.covariance_decrement(K_i, msg.Pz, K_j)
-            x = self.x + K_i @ msg.nu
-            if self.id in msg.merge:
-                gid, members = [msg.k, msg.epoch, key[0]], list(msg.merge)
-            row = {j: b for j, b in row.items() if j in members}
+        if not set(msg.participants) <= set(msg.gains) or any(size < 1 for size, _ in msg.removed):
+            self.drop("invalid", f"commit {msg.key} participants or removed")
+            return False
+        return True
+
+    def _applied(self, c: DclCommit) -> bool:
+        return self.version.get(c.key[0], 0) >= c.seq
+
+    def _behind(self, version: dict) -> bool:
+        """True if `version` holds commits we have not applied."""
+        return any(s > self.version.get(a, 0) for a, s in version.items())
+
+    def _deliver(self, c: DclCommit) -> None:
+        if c.seq == 0 or self._applied(c):
+            return
+        if len(self.waiting) >= 2 * LOG_COMMITS:
+            self.drop("waiting-overflow", str(c.key))
+            return
+        self.waiting[(c.key[0], c.seq)] = c
+        self._apply_ready()
+
+    def _apply_ready(self) -> None:
+        """Apply waiting commits whose history we have; none while we are busy. A commit we took
+        part in at our present version goes first: after any other it could no longer apply
+        as computed."""
+        def order(kv):
+            c = kv[1]
+            return (not (self.id in c.participants and c.version == self.version), c.k, c.epoch, kv[0])
+
+        progress = True
+        while progress and self.busy is None:
+            progress = False
+            for cid, c in sorted(self.waiting.items(), key=order):
+                if self._applied(c):
+                    del self.waiting[cid]
+                elif self.orphan or all(self.version.get(a, 0) >= s for a, s in c.version.items()):
+                    del self.waiting[cid]
+                    self._apply(c)
+                    progress = True
+                    break
+
+    def _apply(self, c: DclCommit) -> None:
+        """Apply one commit whose history we have: as a participant (it was computed at our
+        version and counts on our mean moving), or as an outsider (gain zero)."""
+        if self.orphan:
+            # No cross-covariances: every commit is nothing to us but a version, except the one
+            # that removes us from our former group's rows.
+            for size, o in c.removed:
+                if o == self.id:
+                    if not self.orphan_scaled:
+                        self.row[self.id] = self.row[self.id] * size
+                    self.orphan, self.orphan_scaled = False, True
+            return self._advance(c)
+        d = self.model.state_dim
+        zero = np.zeros((d, d))
+        row, x = dict(self.row), self.x
+        gone = {o for _, o in c.removed if o in row and o != self.id}
+        if gone:
+            # Covariance intersection: the orphans take weight 1/size each (they scaled their
+            # own blocks), the rest of the group (|row| - |gone|)/|row|.
+            f = len(row) / (len(row) - len(gone))
+            row = {j: f * b for j, b in row.items() if j not in gone}
+            self.stats["orphans_removed"] += len(gone)
+        if c.gains:
+            participant = self.id in c.participants
+            if participant and self.version != c.version:
+                # We took part, then moved on (a new tick) before the commit reached us. With
+                # every touched node a participant, being an outsider instead changes nothing
+                # for anyone else; otherwise our cross-covariances with the outsiders are wrong.
+                if set(c.gains) - set(c.participants):
+                    self._make_orphan(f"commit {c.key} of k={c.k} came after we moved on")
+                    return self._advance(c)
+                participant = False
+            if participant:
+                K_i = c.gains[self.id]
+                x = x + K_i @ c.nu
+                for j, K_j in c.gains.items():
+                    row[j] = row.get(j, zero) - kalman.covariance_decrement(K_i, c.Pz, K_j)
+            else:
+                g = self._outsider_gain(c, row)
+                if g is not None:
+                    for a in c.participants:
+                        if a != self.id:
+                            row[a] = row.get(a, zero) - kalman.covariance_decrement(g, c.Pz, c.gains[a])
+                self.stats["outsider_commits"] += 1
         if not np.isfinite(x).all() or not all(np.isfinite(b).all() for b in row.values()):
             self.drop("invalid", "non-finite update")
-            return False
-        self.x, self.row, self.gid, self.members = x, row, gid, members
+            self._make_orphan("non-finite update")
+            return self._advance(c)
+        self.x, self.row = x, row
         self.stats["chains_committed"] += 1
-        if msg.gains or msg.splits:
-            self.applied.append(msg)
-        return True
+        self._advance(c)
+
+    def _outsider_gain(self, c: DclCommit, row: dict) -> np.ndarray | None:
+        """Our gain formula on our own row (eq. 20): what the participants' cross-covariances
+        with us change by. None when we are not correlated with m or n."""
+        m, n, _ = c.key
+        if m not in row and n not in row:
+            return None
+        zero = np.zeros((self.model.state_dim,) * 2)
+        P_i_mn = np.hstack([row.get(m, zero), row.get(n, zero)])
+        return kalman.gain(kalman.solve_lower(c.L, P_i_mn.T).T @ c.Y, c.Pz)
+
+    def _advance(self, c: DclCommit) -> None:
+        for a, s in c.version.items():  # a no-op unless we are an orphan catching up
+            self.version[a] = max(self.version.get(a, 0), s)
+        self.version[c.key[0]] = max(self.version.get(c.key[0], 0), c.seq)
+        self.log.append(c)
+
+    def _make_orphan(self, why: str) -> None:
+        """Our cross-covariances can no longer be kept equal to the others' copies: drop them,
+        taking the covariance-intersection weight 1/|group| for our own block; the group drops
+        its copies with the other weight when a chain next meets us."""
+        if self.orphan:
+            return
+        log.warning("node %s becomes an orphan: %s", self.id, why)
+        self.row = {self.id: self.row[self.id] * len(self.row)}
+        self.orphan, self.orphan_scaled = True, True
+        self.stats["orphaned"] += 1
+
+    # ------------------------------------------------------------------ catching up
+
+    def _on_version(self, src: int, version: dict) -> list[Send]:
+        """A neighbour's beacon showed its version: ask it for commits we lack. An orphan has
+        no cross-covariances for those commits to touch, so it just takes the version."""
+        if not self._behind(version):
+            return []
+        if self.orphan:
+            for a, s in version.items():
+                self.version[a] = max(self.version.get(a, 0), s)
+            return []
+        if src in self.asked:
+            return []
+        self.asked.add(src)
+        return [Send(DclSync(self.k, dict(self.version)), src)]
+
+    def _on_sync(self, src: int, msg: DclSync) -> list[Send]:
+        """Send what the asker lacks from our log, oldest first, in frames of bounded size."""
+        missing = [c for c in self.log if c.seq > msg.version.get(c.key[0], 0)]
+        out, batch, weight = [], [], 0
+        for c in missing:
+            batch.append(c)
+            weight += len(c.gains) + len(c.parent) // 4 + 1
+            if len(batch) == LOG_BATCH or weight > 256:
+                out.append(Send(DclLog(self.k, batch), src))
+                batch, weight = [], 0
+        if batch:
+            out.append(Send(DclLog(self.k, batch), src))
+        return out[:8]  # the rest on the next request
