@@ -51,7 +51,8 @@ def main() -> None:
     m, nodes, _ = run(S.load("wang2019").with_overrides(**{"clock.duration": 2400.0, "radio.range_m": 150.0}))
     print("wang2019, 2400 s, 150 m radio:", {k: round(v["mean_error_m"], 2) for k, v in m["estimators"].items()},
           "NEES", [round(v["mean_nees"], 2) for v in m["estimators"]["ukf-dcl"]["agents"].values()],
-          "splits", sum(n.stats["group_splits"] for n in nodes.values()))
+          "outsider commits", sum(n.stats["outsider_commits"] for n in nodes.values()),
+          "orphaned", sum(n.stats["orphaned"] for n in nodes.values()))
 
 
 if __name__ == "__main__":

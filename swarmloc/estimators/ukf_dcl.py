@@ -131,6 +131,7 @@ class UkfDclNode(Node):
         stuck = [c for c in self.waiting.values() if c.k < self.k - GIVE_UP_TICKS]
         if stuck:
             self._make_orphan(f"{len(stuck)} commits whose history never arrived")
+            self._apply_ready()
 
         # Neighbours are those heard in the last NEIGHBOUR_TICKS ticks before this one (their
         # latest position): in lockstep all those beacons have arrived by now, so every node
@@ -527,7 +528,7 @@ class UkfDclNode(Node):
                     for a in c.participants:
                         if a != self.id:
                             row[a] = row.get(a, zero) - kalman.covariance_decrement(g, c.Pz, c.gains[a])
-                self.stats["outsider_commits"] += 1
+                    self.stats["outsider_commits"] += 1
         if not np.isfinite(x).all() or not all(np.isfinite(b).all() for b in row.values()):
             self.drop("invalid", "non-finite update")
             self._make_orphan("non-finite update")
@@ -574,8 +575,8 @@ class UkfDclNode(Node):
             for a, s in version.items():
                 self.version[a] = max(self.version.get(a, 0), s)
             return []
-        if src in self.asked:
-            return []
+        if self.asked:
+            return []  # one neighbour per tick: they would all send the same commits
         self.asked.add(src)
         return [Send(DclSync(self.k, dict(self.version)), src)]
 
