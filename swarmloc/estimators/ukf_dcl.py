@@ -72,7 +72,7 @@ class UkfDclNode(Node):
         self.row: dict[int, np.ndarray] = {self.id: self.P}
         del self.P  # the own block lives in self.row; one copy only
         self.version: dict[int, int] = {}  # measurer -> its state-changing commits applied here
-        self.orphan, self.orphan_scaled = False, True
+        self.orphan = False
         self.log: deque[DclCommit] = deque(maxlen=LOG_COMMITS)  # applied, in order
         self.waiting: dict[tuple[int, int], DclCommit] = {}  # (measurer, seq) -> not yet applicable
         self.busy: tuple[int, int] | None = None  # (k, epoch) of the chain we reported our version to
@@ -99,7 +99,7 @@ class UkfDclNode(Node):
         self.k, self.x = int(k), np.array(x, float)
         self.row = {self.id: np.array(P, float)}
         self.version, self.waiting, self.busy = {}, {}, None
-        self.orphan, self.orphan_scaled = True, False
+        self.orphan = True
 
     def _block(self, j: int) -> np.ndarray:
         b = self.row.get(j)
@@ -340,9 +340,9 @@ class UkfDclNode(Node):
         removed = sorted(set(token.orphans) & touched)
         if removed and rerun:
             self.reruns[key] = self.reruns.get(key, 0) + 1
-            # The orphan's weight: 1/size. Its former group is at most this big (the touched set
-            # or the chain's reach); the holders take (size - r)/size from their own rows.
-            size = max(len(token.gains), len(token.order), len(self.row))
+            # Covariance intersection with weights 1/size for each orphan and (size - r)/size for
+            # the rest of its former group, which is at most as big as the swarm we know of.
+            size = max(len(self.beacons) + 1, len(token.order), len(token.gains), len(self.row))
             log.info("node %s: chain %s removes orphans %s (group size <= %d)", self.id, key, removed, size)
             return DclCommit(seq=self.version.get(self.id, 0) + 1, version=dict(self.version), gains={},
                              participants=[], removed=[[size, o] for o in removed], finished=False, **common), []
@@ -411,6 +411,7 @@ class UkfDclNode(Node):
         self.known_pending = {tuple(k) for k in msg.pending} - ({key} if msg.finished else set())
         out = [Send(msg, c) for c, p in sorted(msg.parent.items()) if p == self.id]
         self._deliver(msg)
+        self._apply_ready()  # what arrived while we were busy (commits asked for by a version rerun)
         out += self._start_next()
         out += self._release_held()
         return out
@@ -490,21 +491,21 @@ class UkfDclNode(Node):
         version and counts on our mean moving), or as an outsider (gain zero)."""
         if self.orphan:
             # No cross-covariances: every commit is nothing to us but a version, except the one
-            # that removes us from our former group's rows.
+            # that removes us from our former group's rows: our covariance-intersection weight.
             for size, o in c.removed:
                 if o == self.id:
-                    if not self.orphan_scaled:
-                        self.row[self.id] = self.row[self.id] * size
-                    self.orphan, self.orphan_scaled = False, True
+                    self.row[self.id] = self.row[self.id] * size
+                    self.orphan = False
             return self._advance(c)
         d = self.model.state_dim
         zero = np.zeros((d, d))
         row, x = dict(self.row), self.x
-        gone = {o for _, o in c.removed if o in row and o != self.id}
+        gone = {o: size for size, o in c.removed if o in row and o != self.id}
         if gone:
-            # Covariance intersection: the orphans take weight 1/size each (they scaled their
-            # own blocks), the rest of the group (|row| - |gone|)/|row|.
-            f = len(row) / (len(row) - len(gone))
+            # Covariance intersection: each orphan takes weight 1/size (it scales its own block
+            # when it gets this commit), the rest of its former group (size - |gone|)/size.
+            size = max(gone.values())
+            f = size / (size - len(gone))
             row = {j: f * b for j, b in row.items() if j not in gone}
             self.stats["orphans_removed"] += len(gone)
         if c.gains:
@@ -554,14 +555,14 @@ class UkfDclNode(Node):
         self.log.append(c)
 
     def _make_orphan(self, why: str) -> None:
-        """Our cross-covariances can no longer be kept equal to the others' copies: drop them,
-        taking the covariance-intersection weight 1/|group| for our own block; the group drops
-        its copies with the other weight when a chain next meets us."""
+        """Our cross-covariances can no longer be kept equal to the others' copies: drop them.
+        Our own block is still our own error's covariance; the chain that removes us from the
+        others' rows sets the covariance-intersection weights for both sides."""
         if self.orphan:
             return
         log.warning("node %s becomes an orphan: %s", self.id, why)
-        self.row = {self.id: self.row[self.id] * len(self.row)}
-        self.orphan, self.orphan_scaled = True, True
+        self.row = {self.id: self.row[self.id]}
+        self.orphan = True
         self.stats["orphaned"] += 1
 
     # ------------------------------------------------------------------ catching up
