@@ -54,7 +54,7 @@ class Int(Spec):
         return int(v)
 
     def decode(self, v, path):
-        if isinstance(v, bool) or not isinstance(v, int):
+        if type(v) is not int:  # also rejects bool, an int subclass
             raise WireError(f"{path}: expected int, got {type(v).__name__}")
         if (self.lo is not None and v < self.lo) or (self.hi is not None and v > self.hi):
             raise WireError(f"{path}: {v} out of range [{self.lo}, {self.hi}]")

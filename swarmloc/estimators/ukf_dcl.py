@@ -433,10 +433,18 @@ class UkfDclNode(Node):
         """Shapes fit this swarm, L is a Cholesky factor (lower, positive diagonal), Pz is
         positive definite: what the gain formulas need to be well defined."""
         d, dz = self.model.state_dim, self.meas.dim
-        return (msg.L.shape == (2 * d, 2 * d) and msg.Y.shape == (2 * d, dz) and msg.Pz.shape == (dz, dz)
-                and msg.nu.shape == (dz,) and all(g.shape == (d, dz) for g in msg.gains.values())
-                and bool(np.all(np.diag(msg.L) > 0)) and not np.triu(msg.L, 1).any()
-                and bool(np.all(np.linalg.eigvalsh((msg.Pz + msg.Pz.T) / 2) > 0)))
+        if not (msg.L.shape == (2 * d, 2 * d) and msg.Y.shape == (2 * d, dz) and msg.Pz.shape == (dz, dz)
+                and msg.nu.shape == (dz,) and all(g.shape == (d, dz) for g in msg.gains.values())):
+            return False
+        if msg.L.diagonal().min() <= 0 or msg.L[np.triu_indices(2 * d, 1)].any():
+            return False
+        if dz == 1:
+            return bool(msg.Pz[0, 0] > 0)
+        try:
+            np.linalg.cholesky(msg.Pz)
+        except np.linalg.LinAlgError:
+            return False
+        return True
 
     def _valid_commit(self, msg: DclCommit) -> bool:
         if not self._valid_transform(msg):
