@@ -73,6 +73,7 @@ class UkfDclNode(Node):
         del self.P  # the own block lives in self.row; one copy only
         self.version: dict[int, int] = {}  # measurer -> its state-changing commits applied here
         self.orphan = False
+        self.orphan_base: np.ndarray | None = None  # own block when we became an orphan
         self.log: deque[DclCommit] = deque(maxlen=LOG_COMMITS)  # applied, in order
         self.waiting: dict[tuple[int, int], DclCommit] = {}  # (measurer, seq) -> not yet applicable
         self.busy: tuple[int, int] | None = None  # (k, epoch) of the chain we reported our version to
@@ -99,7 +100,7 @@ class UkfDclNode(Node):
         self.k, self.x = int(k), np.array(x, float)
         self.row = {self.id: np.array(P, float)}
         self.version, self.waiting, self.busy = {}, {}, None
-        self.orphan = True
+        self.orphan, self.orphan_base = True, self.row[self.id].copy()
 
     def _block(self, j: int) -> np.ndarray:
         b = self.row.get(j)
@@ -499,11 +500,14 @@ class UkfDclNode(Node):
         version and counts on our mean moving), or as an outsider (gain zero)."""
         if self.orphan:
             # No cross-covariances: every commit is nothing to us but a version, except the one
-            # that removes us from our former group's rows: our covariance-intersection weight.
+            # that removes us from our former group's rows: our covariance-intersection weight
+            # 1/size. It applies to the part of our error that can be correlated with the group,
+            # the block we had when we became an orphan; what was added since (process noise,
+            # the motion of the ticks a restarted agent missed) is independent of everyone.
             for size, o in c.removed:
                 if o == self.id:
-                    self.row[self.id] = self.row[self.id] * size
-                    self.orphan = False
+                    self.row[self.id] = self.row[self.id] + (size - 1) * self.orphan_base
+                    self.orphan, self.orphan_base = False, None
             return self._advance(c)
         d = self.model.state_dim
         zero = np.zeros((d, d))
@@ -570,7 +574,7 @@ class UkfDclNode(Node):
             return
         log.warning("node %s becomes an orphan: %s", self.id, why)
         self.row = {self.id: self.row[self.id]}
-        self.orphan = True
+        self.orphan, self.orphan_base = True, self.row[self.id].copy()
         self.stats["orphaned"] += 1
 
     # ------------------------------------------------------------------ catching up
