@@ -69,6 +69,7 @@ class UkfDclNode(Node):
         self.retries: dict[tuple, int] = {}  # (message type, dst, k, epoch) -> resends so far
         self.ut = kalman.UnscentedTransform.for_pair(self.model.state_dim, spread)
         self.meas = Range(self.model)
+        self._upper = np.triu_indices(2 * self.model.state_dim, 1)  # must be zero in a Cholesky factor
         self.row: dict[int, np.ndarray] = {self.id: self.P}
         del self.P  # the own block lives in self.row; one copy only
         self.version: dict[int, int] = {}  # measurer -> its state-changing commits applied here
@@ -437,7 +438,7 @@ class UkfDclNode(Node):
         if not (msg.L.shape == (2 * d, 2 * d) and msg.Y.shape == (2 * d, dz) and msg.Pz.shape == (dz, dz)
                 and msg.nu.shape == (dz,) and all(g.shape == (d, dz) for g in msg.gains.values())):
             return False
-        if msg.L.diagonal().min() <= 0 or msg.L[np.triu_indices(2 * d, 1)].any():
+        if msg.L.diagonal().min() <= 0 or msg.L[self._upper].any():
             return False
         if dz == 1:
             return bool(msg.Pz[0, 0] > 0)
