@@ -200,7 +200,12 @@ class AgentDaemon:
             k, mean, cov = int(flat[0]), flat[1:1 + d], flat[1 + d:].reshape(d, d)
             self.node.resume(k, mean, cov)
         except (OSError, ValueError) as exc:
-            log.warning("agent %s: checkpoint %s unusable (%s); starting fresh", self.node.id, path, exc)
+            # A restart all the same: resume from the prior (tick -1), so the node inflates its
+            # covariance for every tick it missed, and a UKF-DCL node knows the others still
+            # hold cross-covariances with its lost state (it rejoins as an orphan).
+            log.warning("agent %s: checkpoint %s unusable (%s); resuming from the prior", self.node.id, path, exc)
+            prior = self.node.estimate()
+            self.node.resume(-1, prior.mean, prior.cov)
             return False
         log.warning("agent %s resumed from its checkpoint of tick %d", self.node.id, k)
         return True

@@ -69,10 +69,11 @@ class Node:
         self.k, self.x, self.P = int(k), np.array(x, float), np.array(P, float)
 
     def missed_motion(self, sensors: Sensors) -> np.ndarray | None:
-        """Covariance to add for ticks this node never saw (it was dead): how far it could have
-        gone, from the speed it reports now plus three standard deviations, in every direction."""
+        """Covariance to add for ticks this node never saw (it was dead, or started late from
+        its prior of tick -1): how far it could have gone, from the speed it reports now plus
+        three standard deviations, in every direction."""
         gap = sensors.k - self.k - 1
-        if self.k < 0 or gap <= 0:
+        if gap <= 0:
             return None
         o = sensors.odometry
         reach = gap * o.dt * (abs(o.speed) + 3.0 * o.speed_std)
