@@ -77,7 +77,7 @@ class UkfDclNode(Node):
         self.orphan_base: np.ndarray | None = None  # own block when we became an orphan
         self.log: deque[DclCommit] = deque(maxlen=LOG_COMMITS)  # applied, in order
         self.waiting: dict[tuple[int, int], DclCommit] = {}  # (measurer, seq) -> not yet applicable
-        self.busy: tuple[int, int] | None = None  # (k, epoch) of the chain we reported our version to
+        self.busy = False  # reported our version to this epoch's chain, whose commit has not come
         self.asked: set[int] = set()  # neighbours asked for commits this tick
         self.epoch = 0
         self.pending: dict[Key, tuple[np.ndarray, np.ndarray]] = {}  # own measurements not yet finished
@@ -100,7 +100,7 @@ class UkfDclNode(Node):
         intersection) when a chain next meets it, and it catches up on versions meanwhile."""
         self.k, self.x = int(k), np.array(x, float)
         self.row = {self.id: np.array(P, float)}
-        self.version, self.waiting, self.busy = {}, {}, None
+        self.version, self.waiting, self.busy = {}, {}, False
         self.orphan, self.orphan_base = True, self.row[self.id].copy()
 
     def _block(self, j: int) -> np.ndarray:
@@ -118,7 +118,7 @@ class UkfDclNode(Node):
         gap = self.missed_motion(sensors)
         if gap is not None:
             self.row[self.id] = self.row[self.id] + gap
-        self.k, self.epoch, self.busy = sensors.k, 0, None
+        self.k, self.epoch, self.busy = sensors.k, 0, False
         self.pending.clear()
         self.known_pending.clear()
         self.retries.clear()
@@ -171,7 +171,7 @@ class UkfDclNode(Node):
         if key != self._min_pending():
             return []
         z, R = self.pending[key]
-        self.busy = (self.k, self.epoch)
+        self.busy = True
         msg = DclStart(self.k, self.epoch, list(key), z, R, self.x.copy(), dict(self.row), dict(self.version),
                        self.orphan, [list(k) for k in sorted(self.pending)])
         return [Send(msg, key[1])]
@@ -239,7 +239,7 @@ class UkfDclNode(Node):
     def _report(self) -> tuple[dict, list[int]]:
         """What this node adds to a chain: its version, and its id if it is an orphan. Until
         this epoch's commit (or the next tick) it applies nothing else, so the report stays true."""
-        self.busy = (self.k, self.epoch)
+        self.busy = True
         return dict(self.version), ([self.id] if self.orphan else [])
 
     def _token(self, key, status, order, parent, versions, orphans, pending, L=None, Y=None, Pz=None, nu=None,
@@ -406,7 +406,7 @@ class UkfDclNode(Node):
         if msg.parent.get(self.id, key[0]) != src or (self.id != key[0] and self.id not in msg.parent):
             return self.drop("misrouted", f"commit {key}")
         self.epoch += 1
-        self.busy = None
+        self.busy = False
         if key in self.pending and msg.finished:
             del self.pending[key]
             self.stats["measurements_used" if msg.gains else "measurements_dropped"] += 1
@@ -485,7 +485,7 @@ class UkfDclNode(Node):
             return (not (self.id in c.participants and c.version == self.version), c.k, c.epoch, kv[0])
 
         progress = True
-        while progress and self.busy is None:
+        while progress and not self.busy:
             progress = False
             for cid, c in sorted(self.waiting.items(), key=order):
                 if self._applied(c):
