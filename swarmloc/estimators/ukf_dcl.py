@@ -70,6 +70,7 @@ class UkfDclNode(Node):
         self.ut = kalman.UnscentedTransform.for_pair(self.model.state_dim, spread)
         self.meas = Range(self.model)
         self._upper = np.triu_indices(2 * self.model.state_dim, 1)  # must be zero in a Cholesky factor
+        self._zero = np.zeros((self.model.state_dim,) * 2)  # an absent block; never written to
         self.row: dict[int, np.ndarray] = {self.id: self.P}
         del self.P  # the own block lives in self.row; one copy only
         self.version: dict[int, int] = {}  # measurer -> its state-changing commits applied here
@@ -105,7 +106,7 @@ class UkfDclNode(Node):
 
     def _block(self, j: int) -> np.ndarray:
         b = self.row.get(j)
-        return np.zeros((self.model.state_dim,) * 2) if b is None else b
+        return self._zero if b is None else b
 
     # ------------------------------------------------------------------ tick
 
@@ -290,7 +291,7 @@ class UkfDclNode(Node):
         # Every node correlated with m or n gets a gain, from m's and n's copies of its
         # cross-covariances (equal to its own at equal versions): eq. 20 for the whole set at once.
         touched = sorted(set(msg.row_m) | set(self.row))
-        zero = np.zeros((d, d))
+        zero = self._zero
         P_t_mn = np.vstack([np.hstack([msg.row_m.get(j, zero).T, self.row.get(j, zero).T]) for j in touched])
         K = kalman.gain(kalman.solve_lower(L, P_t_mn.T).T @ Y, Pz)
         gains = {j: K[i * d:(i + 1) * d] for i, j in enumerate(touched)}
@@ -510,8 +511,7 @@ class UkfDclNode(Node):
                     self.row[self.id] = self.row[self.id] + (size - 1) * self.orphan_base
                     self.orphan, self.orphan_base = False, None
             return self._advance(c)
-        d = self.model.state_dim
-        zero = np.zeros((d, d))
+        zero = self._zero
         row, x = dict(self.row), self.x
         gone = {o: size for size, o in c.removed if o in row and o != self.id}
         if gone:
@@ -557,7 +557,7 @@ class UkfDclNode(Node):
         m, n, _ = c.key
         if m not in row and n not in row:
             return None
-        zero = np.zeros((self.model.state_dim,) * 2)
+        zero = self._zero
         P_i_mn = np.hstack([row.get(m, zero), row.get(n, zero)])
         return kalman.gain(kalman.solve_lower(c.L, P_i_mn.T).T @ c.Y, c.Pz)
 
