@@ -32,6 +32,7 @@ from swarmloc.node import Node, Outbox
 log = logging.getLogger("swarmloc.agent")
 
 BROADCAST = "all"
+NETSIM_ID = 0  # sender id of netsim's own frames (clock, sensors, NACKs)
 
 
 @dataclass
@@ -52,7 +53,8 @@ class AgentDaemon:
         self.inbox: queue.SimpleQueue = queue.SimpleQueue()
         self.outbox = Outbox(node.id)
         self.sent = 0  # radio frames published
-        self.consumed = 0  # highest netsim delivery number handled
+        self.consumed = 0  # netsim's delivery number of the last radio frame accepted
+        self.clock_k = -1  # tick of the last clock frame
         self.rejected: Counter[str] = Counter()
         self.hop_latency: list[float] = []  # s from the sender's publish to our loop picking the frame up
         self.handled = 0
@@ -66,15 +68,21 @@ class AgentDaemon:
         conf = zenoh.Config.from_json5(wire.zenoh_config(self.cfg.mode, self.cfg.listen, self.cfg.connect))
         self.session = zenoh.open(conf)
         aid = self.node.id
-        block = dict(congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
+        block = wire.publisher_options(zenoh)
         put = self.inbox.put
+
+        def frame(kind):
+            # An oversized frame is never copied out of Zenoh's buffer, let alone queued.
+            return lambda s: put((kind, s.payload.to_bytes() if len(s.payload) <= wire.MAX_FRAME_BYTES else None,
+                                  s.attachment))
+
         self._subs = [
-            self.session.declare_subscriber(self.keys.sensors(aid), lambda s: put(("sensors", s.payload.to_bytes(), None))),
-            self.session.declare_subscriber(self.keys.radio_rx(aid), lambda s: put(("rx", s.payload.to_bytes(), s.attachment))),
-            self.session.declare_subscriber(self.keys.clock, lambda s: put(("clock", s.payload.to_bytes(), None))),
+            self.session.declare_subscriber(self.keys.sensors(aid), frame("sensors")),
+            self.session.declare_subscriber(self.keys.radio_rx(aid), frame("rx")),
+            self.session.declare_subscriber(self.keys.clock, frame("clock")),
         ]
         if self.cfg.direct:
-            self._subs.append(self.session.declare_subscriber(self.keys.radio_rx(BROADCAST), lambda s: put(("rx", s.payload.to_bytes(), None))))
+            self._subs.append(self.session.declare_subscriber(self.keys.radio_rx(BROADCAST), frame("rx")))
         self._pub_tx = {} if self.cfg.direct else self.session.declare_publisher(self.keys.radio_tx(aid), **block)
         self._pub_est = self.session.declare_publisher(self.keys.estimate(aid), **block)
         self._pub_done = self.session.declare_publisher(self.keys.done(aid), **block)
@@ -133,42 +141,61 @@ class AgentDaemon:
             # Always acknowledge, even a rejected input: lockstep must not wait on us for nothing.
             self._pub_done.put(wire.encode(Done(self.node.k, self.consumed, self.sent), self.node.id, self.handled))
 
-    def _reject(self, kind: str, why: str) -> None:
-        self.rejected[kind] += 1
-        n = self.rejected[kind]
+    def _reject(self, reason: str, why: str) -> None:
+        self.rejected[reason] += 1
+        n = self.rejected[reason]
         if n <= 10 or n % 1000 == 0:
-            log.warning("agent %s drops %s frame (%d so far): %s", self.node.id, kind, n, why)
+            log.warning("agent %s drops a frame: %s (%d so far): %s", self.node.id, reason, n, why)
 
-    def _handle(self, kind: str, data: bytes, attachment) -> list | None:
+    def _envelope(self, kind: str, data: bytes, expect=None) -> wire.Envelope | None:
+        """A decoded frame, or None, refused and counted (docs/wire.md, "Receiver rules")."""
+        try:
+            env = wire.decode(data, expect=expect)
+        except wire.WireError as exc:
+            return self._reject("malformed", f"{kind}: {exc}")
+        if kind in ("sensors", "clock") and not self.cfg.direct and env.src != NETSIM_ID:
+            return self._reject("src-mismatch", f"{kind} from {env.src}")
+        return env
+
+    def _handle(self, kind: str, data: bytes | None, attachment) -> list | None:
         """Radio frames to send in response; None for inputs that need no acknowledgement."""
+        if data is None:
+            self._reject("oversize", kind)
+            return None if kind == "clock" else []
         if kind == "clock":
-            try:
-                env = wire.decode(data, expect=(Clock,))
-            except wire.WireError as exc:
-                self._reject("clock", str(exc))
+            env = self._envelope(kind, data, (Clock,))
+            if env is None:
                 return None
-            if env.body.mode == "stop" and self.cfg.exit_on_stop:
-                self._stop.set()
+            if env.body.mode == "stop":
+                if self.cfg.exit_on_stop:
+                    self._stop.set()
+            elif env.body.k <= self.clock_k:
+                self._reject("clock-replay", f"tick {env.body.k} after {self.clock_k}")
+            else:
+                self.clock_k = env.body.k
             return None
         if kind == "sensors":
-            try:
-                env = wire.decode(data, expect=(Sensors,))
-            except wire.WireError as exc:
-                self._reject("sensors", str(exc))
+            env = self._envelope(kind, data, (Sensors,))
+            if env is None:
                 return []
             sends = self.node.step(env.body)
             self._checkpoint()
             return sends
-        delivery = wire.decode_delivery(attachment.to_bytes() if attachment is not None else None)
-        if delivery is not None:
+        if not self.cfg.direct:
+            # netsim numbers what it delivers to us 1, 2, 3... on one publisher: anything else on
+            # our key is not a delivery (a copy, a replay, a stranger) and must not be counted
+            # as consumed, or lockstep would wait for frames that never come.
+            delivery = wire.decode_delivery(attachment.to_bytes() if attachment is not None else None)
+            if delivery is None:
+                return self._reject("rx-unnumbered", "radio frame without a delivery number") or []
             n, sent = delivery
-            self.consumed = max(self.consumed, n)
+            if n != self.consumed + 1:
+                return self._reject("rx-out-of-sequence", f"delivery {n} after {self.consumed}") or []
+            self.consumed = n
             if sent is not None and len(self.hop_latency) < 100_000:
                 self.hop_latency.append(time.perf_counter() - sent)
-        try:
-            env = wire.decode(data)
-        except wire.WireError as exc:
-            self._reject("radio", str(exc))
+        env = self._envelope("radio", data)
+        if env is None:
             return []
         return self._radio(env)
 
@@ -212,14 +239,21 @@ class AgentDaemon:
 
     def _radio(self, env: wire.Envelope) -> list:
         if isinstance(env.body, LinkNack):
-            failed = self.outbox.failed(env.body)
-            return self.node.link_failed(failed.dst, failed.msg) if failed else []
+            failed = self.outbox.failed(env.body) if env.src == NETSIM_ID and not self.cfg.direct else None
+            if failed is None:
+                return self._reject("nack-unmatched", f"nack for seq {env.body.seq}") or []
+            return self.node.link_failed(failed.dst, failed.msg)
+        if env.dst is not None and env.dst != self.node.id:
+            return self._reject("misaddressed", f"frame for {env.dst}") or []
         if env.src == self.node.id:
-            return []
+            return self._reject("own-src", "a frame of our own") or []
         return self.node.receive(env.src, env.body)
 
     def _send(self, send) -> None:
-        data = self.outbox.encode(send).data
+        tx = self.outbox.encode(send)
+        if tx is None:
+            return self._reject("oversize-out", f"{send.msg.TYPE} to {send.dst}")
+        data = tx.data
         if self.cfg.direct:
             key = self.keys.radio_rx(BROADCAST if send.dst is None else send.dst)
             pub = self._pub_tx.get(key)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import queue
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -59,8 +60,6 @@ class NetsimServer:
         self.sim = Simulation(scenario, cfg.seed)
         self.ids = self.sim.ids
         self.mode = scenario.clock.mode
-        # Frames only need to wait for a round when they can interfere with each other.
-        self.rounds = self.sim.channel.models_interference
         self.keys = wire.Keys(cfg.swarm)
         self.q: queue.SimpleQueue = queue.SimpleQueue()
         self.alive: set[int] = set()
@@ -68,8 +67,17 @@ class NetsimServer:
         self.joined_at = {a: 0 for a in self.ids}  # first tick an agent must acknowledge
         self.done: dict[int, Done] = {}
         self.delivered = {a: 0 for a in self.ids}  # frames put on radio/rx/<a> since it (re)joined
-        self.received = {a: 0 for a in self.ids}  # frames taken from radio/tx/<a> since it (re)joined
-        self.invalid_tx = 0
+        # Frames accepted from radio/tx/<a> since it (re)joined. An agent numbers its frames
+        # 1, 2, 3... and one Zenoh publisher delivers them in order, so this is also the last
+        # accepted seq: anything else on that key (a repeat, a replay, a stranger) is refused.
+        self.received = {a: 0 for a in self.ids}
+        # Envelope seq of the last accepted `done` and `estimate` per agent: each increases.
+        self.last_seq = {kind: {a: -1 for a in self.ids} for kind in ("done", "estimate")}
+        self.tick_timeouts = 0  # times a lockstep tick waited out tick_timeout
+        self.rejected: dict[str, Counter[str]] = {k: Counter() for k in ("tx", "done", "estimate", "alive")}
+        self.agent_events: list[dict] = []  # agents leaving (crash, kill) or joining after tick 0
+        # Lockstep always resolves frames in rounds, in (sender, seq) order, never on arrival:
+        # with arrival order a node could meet a token and a log replay in either order.
         self.round: list[RadioTx] = []
         self._new_event = False
         self.pending_faults: list = []
@@ -79,6 +87,7 @@ class NetsimServer:
         self.sent_at: dict[tuple[int, int], float] = {}  # (src, seq) -> sender's send time
         self.hop_latency: list[float] = []  # wall s from tx arrival at netsim to rx publish
         self.t0 = 0.0
+        self.finished = False  # the last tick is over: agents leaving now are not events
 
     # ---------------------------------------------------------------- zenoh plumbing
 
@@ -89,11 +98,17 @@ class NetsimServer:
         except zenoh.ZError as exc:
             raise SetupError(f"cannot open Zenoh router on {', '.join(self.cfg.listen)}: {exc}") from None
         put, k = self.q.put, self.keys
-        block = dict(congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
+
+        def frame(kind, stamp=None):
+            # An oversized frame is never copied out of Zenoh's buffer, let alone queued.
+            return lambda s: put((kind, str(s.key_expr), s.payload.to_bytes() if len(s.payload) <= wire.MAX_FRAME_BYTES
+                                  else None, stamp and (time.perf_counter(), s.attachment)))
+
+        block = wire.publisher_options(zenoh)
         self._subs = [
-            self.session.declare_subscriber(f"{k.prefix}/radio/tx/*", lambda s: put(("tx", str(s.key_expr), s.payload.to_bytes(), (time.perf_counter(), s.attachment)))),
-            self.session.declare_subscriber(f"{k.prefix}/agent/*/done", lambda s: put(("done", str(s.key_expr), s.payload.to_bytes(), None))),
-            self.session.declare_subscriber(f"{k.prefix}/agent/*/estimate", lambda s: put(("est", str(s.key_expr), s.payload.to_bytes(), None))),
+            self.session.declare_subscriber(f"{k.prefix}/radio/tx/*", frame("tx", True)),
+            self.session.declare_subscriber(f"{k.prefix}/agent/*/done", frame("done")),
+            self.session.declare_subscriber(f"{k.prefix}/agent/*/estimate", frame("estimate")),
             self.session.liveliness().declare_subscriber(f"{k.prefix}/agent/*/alive", lambda s: put(("alive", str(s.key_expr), s.kind, None)), history=True),
         ]
         self._ctl = self.session.declare_queryable(k.control, lambda q: put(("ctl", "", q, None)))
@@ -113,81 +128,106 @@ class NetsimServer:
 
     # ---------------------------------------------------------------- inputs
 
-    def _from_agent(self, key: str, payload: bytes, cls):
-        """(agent id, message) of a known agent's frame on its own key, or None (logged)."""
+    def _refuse(self, kind: str, key: str, reason: str, detail: str = "") -> None:
+        counter = self.rejected[kind]
+        counter[reason] += 1
+        if counter[reason] <= 10 or counter[reason] % 1000 == 0:
+            log.warning("refused %s on %s (%s, %d so far) %s", kind, key, reason, counter[reason], detail)
+
+    def _from_agent(self, kind: str, key: str, payload: bytes | None, cls=None) -> tuple[int, wire.Envelope] | None:
+        """(agent id, envelope) of a frame an agent sent on its own key, or None, refused and
+        counted (docs/wire.md, "Receiver rules"). cls=None leaves the body undecoded."""
         try:
             aid = wire.Keys.agent_of(key)
-            body = wire.decode(payload, expect=(cls,)).body
-        except (wire.WireError, ValueError) as exc:
-            log.warning("bad %s on %s: %s", cls.TYPE, key, exc)
-            return None
-        return (aid, body) if aid in self.delivered else None
+        except ValueError:
+            aid = None
+        if aid not in self.delivered:
+            return self._refuse(kind, key, "unknown-agent")
+        if payload is None:
+            return self._refuse(kind, key, "oversize")
+        try:
+            env = wire.decode(payload, expect=None if cls is None else (cls,), body=cls is not None)
+        except wire.WireError as exc:
+            return self._refuse(kind, key, "malformed", str(exc))
+        if env.src != aid:
+            return self._refuse(kind, key, "src-mismatch", f"src {env.src}")
+        return aid, env
 
     def _handle(self, item) -> None:
         kind, key, payload, stamp = item
         if kind == "tx":
             self._on_tx(key, payload, stamp)
-        elif kind == "done" and (got := self._from_agent(key, payload, Done)):
-            aid, done = got
-            self.done[aid] = done
+        elif kind == "done" and (got := self._from_agent(kind, key, payload, Done)):
+            aid, env = got
+            if env.seq <= self.last_seq["done"][aid]:
+                return self._refuse(kind, key, "stale", f"seq {env.seq}")
+            self.last_seq["done"][aid] = env.seq
+            self.done[aid] = env.body
             self.unresponsive.discard(aid)
-        elif kind == "est" and (got := self._from_agent(key, payload, EstimateMsg)):
-            aid, e = got
+        elif kind == "estimate" and (got := self._from_agent(kind, key, payload, EstimateMsg)):
+            aid, env = got
+            # An agent publishes several estimates of one tick as its chains commit; an older
+            # one arriving again must not replace the newest.
+            if env.seq <= self.last_seq["estimate"][aid]:
+                return self._refuse(kind, key, "stale", f"seq {env.seq}")
+            self.last_seq["estimate"][aid] = env.seq
+            e = env.body
             self.record.add_estimate(e.algorithm, aid, Estimate(e.k, e.mean, e.cov))
         elif kind == "alive":
-            self._on_alive(wire.Keys.agent_of(key), payload == zenoh.SampleKind.PUT)
+            try:
+                aid = wire.Keys.agent_of(key)
+            except ValueError:
+                return self._refuse("alive", key, "unknown-agent")
+            self._on_alive(aid, payload == zenoh.SampleKind.PUT)
         elif kind == "ctl":
             self._control(payload)
 
     def _on_alive(self, aid: int, up: bool) -> None:
         if aid not in self.delivered:
-            return
+            return self._refuse("alive", self.keys.alive(aid), "unknown-agent")
+        # Zenoh reports a key's first token and its last one going: a second token on an
+        # agent's key (a stranger's) makes no event at all.
         if up:
             # A (re)joining agent starts counting from zero and is waited for from the next tick.
             self.alive.add(aid)
             self.sim.down.discard(aid)
             self.delivered[aid] = self.received[aid] = 0
+            for seqs in self.last_seq.values():
+                seqs[aid] = -1
             self.done.pop(aid, None)
             self.joined_at[aid] = self.sim.k + 1
             if self.sim.k >= 0:
                 log.warning("agent %s joined at tick %d", aid, self.sim.k)
+                self.agent_events.append({"k": self.sim.k, "t": self.sim.t, "agent": aid, "event": "joined"})
         else:
             self.alive.discard(aid)
             self.sim.down.add(aid)  # the radio now drops (and NACKs) frames to it as "down"
             log.warning("agent %s left the swarm at tick %d", aid, self.sim.k)
+            if not self.finished:
+                self.agent_events.append({"k": self.sim.k, "t": self.sim.t, "agent": aid, "event": "left"})
 
-    def _on_tx(self, key: str, payload: bytes, stamp) -> None:
+    def _on_tx(self, key: str, payload: bytes | None, stamp) -> None:
         arrived, attachment = stamp
-        try:
-            src = wire.Keys.agent_of(key)
-        except ValueError:
+        got = self._from_agent("tx", key, payload)
+        if got is None:
             return
-        if src not in self.received:
-            return
-        self.received[src] += 1
-        try:
-            env = wire.decode(payload, body=False)  # receivers validate the body themselves
-        except wire.WireError as exc:
-            self.invalid_tx += 1
-            log.warning("agent %s sent an invalid frame: %s", src, exc)
-            return
-        if env.src != src:
-            self.invalid_tx += 1
-            log.warning("frame on %s claims sender %s", key, env.src)
-            return
+        src, env = got
+        if src not in self.alive:
+            return self._refuse("tx", key, "not-joined")
+        if env.seq != self.received[src] + 1:
+            return self._refuse("tx", key, "out-of-sequence", f"seq {env.seq} after {self.received[src]}")
+        self.received[src] = env.seq
         sent = wire.decode_send_time(attachment.to_bytes() if attachment is not None else None)
         self.sent_at[(src, env.seq)] = sent if sent is not None else float("nan")
         if len(self.sent_at) > 100_000:  # only recent frames are still in flight
-            for key in list(self.sent_at)[:50_000]:
-                del self.sent_at[key]
+            for old in list(self.sent_at)[:50_000]:
+                del self.sent_at[old]
         tx = RadioTx(src, env.dst, env.seq, payload)
         if self.mode == "realtime":
             self._deliver_all(self.sim.offer(tx, self._now()), arrived)
             self._new_event = True
-        elif self.rounds:
-            self.round.append(tx)
         else:
-            self._deliver_all(self.sim.exchange([tx]), arrived)
+            self.round.append(tx)
 
     def _deliver_all(self, rxs: list[RadioRx], arrived: float | None = None) -> None:
         for rx in rxs:
@@ -311,6 +351,7 @@ class NetsimServer:
                 else:
                     self._realtime_tick()
             wall = time.perf_counter() - self.t0
+            self.finished = True
             agent_stats = self.agent_stats()
             self._put(self.pub_clock, Clock(self.sim.k, self.sim.t, "stop", self.sc.clock.dt))
             return self._finish(wall, agent_stats)
@@ -347,6 +388,7 @@ class NetsimServer:
             while not self._pump(lambda: self._quiet(k), self.cfg.tick_timeout):
                 lagging = [a for a in self._waited_for() if not self._quiet_agent(a, k)]
                 log.error("tick %d: agents %s silent for %.0f s; going on without them", k, lagging, self.cfg.tick_timeout)
+                self.tick_timeouts += 1
                 self.unresponsive.update(lagging)
             if not self.round:
                 break
@@ -400,12 +442,15 @@ class NetsimServer:
             "transport": f"zenoh-{self.mode}",
             "wall_time_s": wall,
             "ticks_per_s": (self.sim.steps + 1) / wall if wall > 0 else None,
-            "radio": {"model": self.sc.radio["model"], **self.sim.radio_summary(), "invalid_tx": self.invalid_tx,
+            "radio": {"model": self.sc.radio["model"], **self.sim.radio_summary(),
                       "netsim_hop_us_median": float(np.median(lat)) if lat.size else None,
                       "netsim_hop_us_p99": float(np.percentile(lat, 99)) if lat.size else None},
             "faults": self.sim.fault_log,
             "agent_stats": agent_stats,
             "unresponsive_agents": sorted(self.unresponsive),
+            "tick_timeouts": self.tick_timeouts,
+            "agent_events": self.agent_events,
+            "rejected": {kind: dict(c) for kind, c in self.rejected.items()},
         }
         algorithms = [a for a in ("il", "ukf-dcl", "ukf-ccl") if a in self.sc.estimators or a in self.record.est]
         if self.cfg.out is None:

@@ -7,9 +7,7 @@ Two ways to move frames, one per clock mode:
 - exchange(round): lockstep. Every frame the swarm sent since the last round is offered at
   the same modelled instant, in (sender, seq) order, and resolved to the end. The content of
   a round depends only on what the agents computed, never on wall-clock arrival order, so a
-  lockstep run is deterministic for a seed even with interference. Without interference
-  (unit disk) a frame's fate does not depend on other frames at all (fault loss is drawn
-  from a generator keyed by the frame), so netsim may route each frame as a round of its own.
+  lockstep run is deterministic for a seed, whatever the radio model.
 - offer(frame, t) / advance(t): real time. Frames enter the medium when they arrive and
   come out after their modelled airtime, queueing and latency.
 """

@@ -127,13 +127,18 @@ class Outbox:
         self.seq = 0
         self.unicast: OrderedDict[int, Send] = OrderedDict()
 
-    def encode(self, send: Send) -> RadioTx:
+    def encode(self, send: Send) -> RadioTx | None:
+        """The frame, or None if it would exceed the frame limit: it is not sent and takes no
+        seq, so a receiver still sees this node's frames numbered without gaps."""
+        data = wire.encode(send.msg, self.node_id, self.seq + 1, send.dst)
+        if len(data) > wire.MAX_FRAME_BYTES:
+            return None
         self.seq += 1
         if send.dst is not None:
             self.unicast[self.seq] = send
             if len(self.unicast) > self.keep:
                 self.unicast.popitem(last=False)
-        return RadioTx(self.node_id, send.dst, self.seq, wire.encode(send.msg, self.node_id, self.seq, send.dst))
+        return RadioTx(self.node_id, send.dst, self.seq, data)
 
     def failed(self, nack: LinkNack) -> Send | None:
         send = self.unicast.pop(nack.seq, None)

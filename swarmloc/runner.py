@@ -75,8 +75,9 @@ class InProcessRunner:
         return [] if env.src == rx.receiver else node.receive(env.src, env.body)
 
     def _encode(self, src: int, sends) -> list[RadioTx]:
-        self.frames += len(sends)
-        return [self.outbox[src].encode(s) for s in sends]
+        txs = [tx for s in sends if (tx := self.outbox[src].encode(s)) is not None]
+        self.frames += len(txs)
+        return txs
 
 
 def make_nodes(algorithm: str, scenario, ids: Iterable[int] | None = None) -> dict[int, Node]:

@@ -350,8 +350,14 @@ class Keys:
         raise ValueError(f"no agent id in {key!r}")
 
 
+# Zenoh refuses to reassemble a message larger than this for a client or peer session, so a
+# hostile publisher cannot make an agent buffer megabytes; frames between MAX_FRAME_BYTES and
+# this still reach the subscriber callbacks, which count them as oversize without copying them.
+ZENOH_MAX_MESSAGE_BYTES = 4 * MAX_FRAME_BYTES
+
+
 def zenoh_config(mode: str, listen: list[str] = (), connect: list[str] = ()) -> str:
-    """JSON5 for zenoh.Config.from_json5: loopback only, no multicast scouting.
+    """JSON5 for zenoh.Config.from_json5: no multicast scouting, bounded message size.
 
     Scouting is off so a test's sessions never find a stranger's on the same machine.
     """
@@ -360,8 +366,16 @@ def zenoh_config(mode: str, listen: list[str] = (), connect: list[str] = ()) -> 
         "listen": {"endpoints": list(listen)},
         "connect": {"endpoints": list(connect)},
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": mode == "peer"}},
+        "transport": {"link": {"rx": {"max_message_size": ZENOH_MAX_MESSAGE_BYTES}}},
     }
     return json.dumps(cfg)
+
+
+def publisher_options(zenoh) -> dict:
+    """Options of every swarmloc publisher, given the zenoh module (this module imports none).
+    Reliable and blocking: with Zenoh's default (drop) a burst of small frames loses a quarter
+    of them, and loss is the radio model's to decide, not the transport's."""
+    return dict(congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
 
 
 # Attachments (docs/wire.md, "Attachments"). An agent stamps each radio/tx frame with its send

@@ -86,6 +86,7 @@ class UkfDclNode(Node):
         self.beacons: dict[int, dict[int, np.ndarray]] = {}  # j -> {tick: position}
         self.neighbours: dict[int, np.ndarray] = {}  # snapshot for this tick
         self.held: list[tuple[int, object]] = []  # early frames: (src, msg)
+        self.seen: set[tuple] = set()  # fingerprints of chain frames handled, this tick and later
         self.reruns: dict[Key, int] = {}  # version reruns per chain key (this tick)
         self.stats = {"chains_committed": 0, "measurements_used": 0, "measurements_dropped": 0,
                       "outsider_commits": 0, "commits_replayed": 0, "orphaned": 0, "orphans_removed": 0}
@@ -125,6 +126,7 @@ class UkfDclNode(Node):
         self.retries.clear()
         self.reruns.clear()
         self.asked.clear()
+        self.seen = {f for f in self.seen if f[2] >= self.k}
         # F = I: prediction leaves every cross-covariance as it is, so it commutes with commits
         # applied late (their outsider part reads only cross-covariances).
         x, _, Q = self.model.predict(self.x, odometry_of(sensors))
@@ -195,6 +197,18 @@ class UkfDclNode(Node):
             return []
         if not isinstance(msg, (DclStart, DclToken, DclCommit)):
             return self.drop("unexpected-type", type(msg).__name__)
+        # A radio may deliver a frame twice; a second copy of a chain step would run the chain
+        # twice. A copy is the same step from the same sender: a token that legitimately comes
+        # back (backtracking) has grown, and a resend after a NACK replaces a frame never heard.
+        fingerprint = (src, msg.TYPE, msg.k, msg.epoch, tuple(msg.key),
+                       tuple(msg.order) if isinstance(msg, DclToken) else (),
+                       (msg.seq, msg.finished) if isinstance(msg, DclCommit) else ())
+        if fingerprint in self.seen:
+            return self.drop("duplicate", f"{msg.TYPE} {msg.key}")
+        self.seen.add(fingerprint)
+        return self._chain_frame(src, msg)
+
+    def _chain_frame(self, src, msg) -> list[Send]:
         if msg.k < self.k or (msg.k == self.k and msg.epoch < self.epoch):
             if isinstance(msg, DclCommit):
                 return self._late_commit(src, msg)
@@ -215,19 +229,19 @@ class UkfDclNode(Node):
             return self.drop("invalid", repr(exc))
 
     def _release_held(self) -> list[Send]:
-        ready = [(s, m) for s, m in self.held if m.k == self.k and m.epoch == self.epoch]
-        later = [(s, m) for s, m in self.held if m.k > self.k or (m.k == self.k and m.epoch > self.epoch)]
-        out = []
+        ready, later, out = [], [], []
         for s, m in self.held:
-            if (s, m) in ready or (s, m) in later:
-                continue
-            if isinstance(m, DclCommit):
+            if m.k == self.k and m.epoch == self.epoch:
+                ready.append((s, m))
+            elif m.k > self.k or (m.k == self.k and m.epoch > self.epoch):
+                later.append((s, m))
+            elif isinstance(m, DclCommit):
                 out += self._late_commit(s, m)  # overtaken, but a commit may still apply
             else:
                 self.drop("stale", "held frame overtaken")
         self.held = later
         for src, m in ready:
-            out += self.receive(src, m)
+            out += self._chain_frame(src, m)
         return out
 
     def _preempted(self, key: Key) -> bool:
