@@ -271,14 +271,3 @@ class AgentDaemon:
             return
         self._last_published = sig
         self._pub_est.put(wire.encode(EstimateMsg(e.k, self.node.algorithm, e.mean, e.cov), self.node.id, self.handled))
-
-
-def run_agent(node: Node, cfg: AgentConfig) -> AgentDaemon:
-    daemon = AgentDaemon(node, cfg)
-    daemon.resume()
-    daemon.open()
-    try:
-        daemon.run()
-    finally:
-        daemon.close()
-    return daemon

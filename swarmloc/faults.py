@@ -13,7 +13,8 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError,
 
 
 class _Fault(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # NaN or infinity in a fault would reach metrics.json, which JSON cannot hold.
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
     at: float | None = Field(None, ge=0, description="scenario timelines: simulated time (s) the fault happens")
     duration: float | None = Field(None, gt=0, description="clear automatically after this many seconds (CLI: --for)")
 

@@ -1,0 +1,157 @@
+"""Talk to a running swarm: find it by name, query its netsim's control queryable.
+
+Each `swarmloc run` registers its swarm in a runtime file (endpoint, launcher pid, scenario,
+run directory), so `status`, `inject`, `faults` and `clear` reach it by its --swarm name
+even when it took a free port. Zenoh is imported only when a session is opened.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from pathlib import Path
+
+import typer
+
+from swarmloc import wire
+
+DEFAULT_PORT = 7447
+DEFAULT_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
+
+
+class Failure(typer.TyperException):
+    """An error the user can act on: shown as `error: <message>` (no traceback), exit code `code`."""
+
+    def __init__(self, message: str, code: int = 1):
+        super().__init__(message)
+        self.exit_code = code
+
+
+class NotRunning(Failure):
+    def __init__(self, swarm: str, endpoints: list[str]):
+        super().__init__(f"no swarm '{swarm}' is running on {', '.join(endpoints)} (start one with `swarmloc run`)")
+
+
+def zenoh_message(exc: Exception) -> str:
+    """A Zenoh error without the Rust source location it ends with."""
+    return re.sub(r"\s+at \S+\.rs:\d+\.?\s*$", "", str(exc)).strip()
+
+
+# ------------------------------------------------------------------------------------ registry
+
+
+def runtime_dir() -> Path:
+    base = os.environ.get("XDG_RUNTIME_DIR")
+    d = Path(base) / "swarmloc" if base else Path("/tmp") / f"swarmloc-{os.getuid()}"
+    d.mkdir(mode=0o700, parents=True, exist_ok=True)
+    st = d.lstat()
+    # /tmp is shared: a directory planted there by another user must not be trusted.
+    if st.st_uid != os.getuid() or not d.is_dir() or d.is_symlink():
+        raise Failure(f"runtime directory {d} is not a directory owned by you; remove it or set XDG_RUNTIME_DIR")
+    return d
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    try:  # a killed launcher its parent has not reaped yet is gone all the same
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return True
+
+
+def lookup(swarm: str) -> dict | None:
+    """The runtime entry of a live launcher of this swarm; a stale entry is removed."""
+    path = runtime_dir() / f"{swarm}.json"
+    try:
+        info = json.loads(path.read_text())
+        if _alive(int(info["pid"])):
+            return info
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    path.unlink(missing_ok=True)
+    return None
+
+
+class Registration:
+    """A launcher's runtime entry for its swarm: claimed exclusively, removed when the run ends."""
+
+    def __init__(self, swarm: str, **info):
+        self.path = runtime_dir() / f"{swarm}.json"
+        self.info = {"swarm": swarm, "pid": os.getpid(), **info}
+        tmp = self._write()
+        try:
+            while True:
+                try:
+                    os.link(tmp, self.path)  # exclusive, and never seen half written
+                    return
+                except FileExistsError:
+                    running = lookup(swarm)  # removes a stale entry, then we try again
+                    if running is not None:
+                        raise Failure(f"swarm '{swarm}' is already running (launcher pid {running['pid']}, "
+                                      f"{running['endpoint']}); give this run another --swarm name", 2) from None
+        finally:
+            tmp.unlink()
+
+    def _write(self) -> Path:
+        tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}")
+        with os.fdopen(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600), "w") as f:
+            json.dump(self.info, f)
+        return tmp
+
+    def update(self, **info) -> None:
+        self.info.update(info)
+        os.replace(self._write(), self.path)
+
+    def remove(self) -> None:
+        self.path.unlink(missing_ok=True)
+
+
+# ------------------------------------------------------------------------------------ control
+
+
+class ControlClient:
+    """A Zenoh client session to a swarm's netsim, for requests on its control queryable."""
+
+    def __init__(self, swarm: str, connect: list[str] | None = None):
+        self.swarm = swarm
+        if connect:
+            self.endpoints = list(connect)
+        else:
+            found = lookup(swarm)
+            self.endpoints = [found["endpoint"] if found else DEFAULT_ENDPOINT]
+
+    def __enter__(self) -> "ControlClient":
+        import zenoh
+
+        try:
+            self.session = zenoh.open(zenoh.Config.from_json5(wire.zenoh_config("client", connect=self.endpoints)))
+        except zenoh.ZError:
+            raise NotRunning(self.swarm, self.endpoints) from None
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.session.close()
+
+    def request(self, op: str, args: dict | None = None, timeout: float = 3.0) -> dict:
+        from swarmloc.messages import Control, Reply
+
+        payload = wire.encode(Control(op, args or {}), 0, 0)
+        for r in self.session.get(wire.Keys(self.swarm).control, payload=payload, timeout=timeout):
+            if r.ok is None:
+                continue
+            try:
+                body = wire.decode(r.ok.payload.to_bytes(), expect=(Reply,)).body
+            except wire.WireError as exc:
+                raise Failure(f"unreadable reply from netsim: {exc}") from None
+            if not body.ok:
+                raise Failure(f"netsim refused {op}: {body.error}", 2)
+            return body.data
+        raise NotRunning(self.swarm, self.endpoints)
