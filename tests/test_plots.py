@@ -1,0 +1,134 @@
+"""plots/links.png: readable at 7 and 16 agents, with either radio model and faults close together."""
+
+import itertools
+
+import matplotlib.image
+import matplotlib.pyplot as plt
+import numpy as np
+import pytest
+
+from swarmloc import plots
+from swarmloc import scenario as S
+from helpers import in_process
+
+# Close together on purpose, several in one tick: their labels would overlap unless stacked.
+FAULTS = [
+    {"at": 5.0, "action": "cut", "link": [1, 2], "duration": 5},
+    {"at": 5.0, "action": "loss", "probability": 0.3, "node": 3},
+    {"at": 5.5, "action": "radio-off", "node": 4, "duration": 2},
+    {"at": 6.0, "action": "partition", "groups": [[1, 2, 3]], "duration": 3},
+    {"at": 6.0, "action": "jammer", "name": "j1", "position": [0, 0], "radius_m": 40, "duration": 3},
+    {"at": 6.5, "action": "clear-loss", "node": 3},
+]
+RADIOS = {"unit-disk": {"model": "unit-disk", "range_m": 150},
+          "log-distance": {"model": "log-distance", "tx_power_dbm": 10}}
+
+
+def scenario(n: int, radio: str):
+    """n agents on a grid 60 m apart, 15 s: some links out of range (16 agents), all in range (7)."""
+    agents = [{"id": i + 1, "start": [60.0 * (i % 4), 60.0 * (i // 4)], "heading": 0.7 * i,
+               "motion": {"kind": "random", "speed": 1.0, "turn_rate_std": 0.08}} for i in range(n)]
+    return S.parse({"version": 1, "name": f"plots{n}", "seed": 3, "clock": {"dt": 0.5, "duration": 15},
+                    "world": {"agents": agents}, "radio": RADIOS[radio], "estimators": ["ukf-dcl"],
+                    "sensors": {"range": {"probability": 0.5, "max_per_step": 2, "max_range": 200}},
+                    "faults": FAULTS})
+
+
+@pytest.fixture(scope="module")
+def runs():
+    cache = {}
+
+    def get(n, radio):
+        if (n, radio) not in cache:
+            cache[n, radio] = in_process(scenario(n, radio))[2].radio_arrays()
+        return cache[n, radio]
+
+    return get
+
+
+@pytest.fixture
+def figure(runs):
+    made = []
+
+    def make(n, radio):
+        made.append(plots.links_figure(runs(n, radio)))
+        made[-1].canvas.draw()
+        return made[-1]
+
+    yield make
+    for fig in made:
+        plt.close(fig)
+
+
+def overlapping(boxes) -> list:
+    return [(a, b) for a, b in itertools.combinations(boxes, 2) if a.overlaps(b)]
+
+
+CASES = [(n, radio) for n in (7, 16) for radio in RADIOS]
+
+
+@pytest.mark.parametrize("n,radio", CASES)
+def test_links_png_written(tmp_path, runs, n, radio):
+    path = plots.plot_links(tmp_path, runs(n, radio))
+    assert path == tmp_path / "plots" / "links.png"
+    height, width, _ = matplotlib.image.imread(path).shape
+    assert width == 11 * plots.DPI and height < 20 * plots.DPI  # 16 agents: bounded rows, not 120
+
+
+@pytest.mark.parametrize("n,radio", CASES)
+def test_snr_panel_only_when_the_model_has_snr(figure, n, radio):
+    fig = figure(n, radio)
+    names = [ax.get_label() for ax in fig.axes]
+    assert ("snr" in names) == (radio == "log-distance")
+    assert {"faults", "links", "link rows", "receptions"} <= set(names)
+    if radio == "unit-disk":
+        assert "no SNR recorded" in fig.get_suptitle()
+
+
+@pytest.mark.parametrize("n,radio", CASES)
+def test_fault_labels_do_not_overlap(runs, figure, n, radio):
+    fig = figure(n, radio)
+    labels = [t for t in fig.findobj(plt.Text) if t.get_gid() == "fault-label"]
+    assert sorted(int(t.get_text()) for t in labels) == list(range(1, runs(n, radio)["fault_t"].size + 1))
+    boxes = [t.get_window_extent() for t in labels]
+    assert not overlapping(boxes)
+    # They are that close: side by side on one line, some would overlap.
+    assert overlapping([b.translated(0, -b.y0) for b in boxes])
+
+
+@pytest.mark.parametrize("n,radio", CASES)
+def test_link_rows_readable(figure, n, radio):
+    fig = figure(n, radio)
+    ax = next(ax for ax in fig.axes if ax.get_label() == "link rows")
+    ticks = ax.get_yticklabels()
+    assert 0 < len(ticks) <= plots.MAX_LINK_ROWS
+    assert min(t.get_fontsize() for t in ticks) >= 7
+    assert not overlapping([t.get_window_extent() for t in ticks])
+    legend = next(ax.get_legend() for ax in fig.axes if ax.get_label() == "links")
+    assert [t.get_text() for t in legend.get_texts()] == ["up", "down (channel)", "down (fault)"]
+
+
+def test_link_state_tells_faults_from_the_channel(runs):
+    h = plots.LinkHistory(runs(16, "unit-disk"))
+    pair = {tuple(p): j for j, p in enumerate(h.pairs.tolist())}
+    cut = h.state[:, pair[1, 2]]
+    during = (h.t >= 5.0) & (h.t < 10.0)  # the cut, and the partition inside it
+    assert (cut[during] == plots.FAULT_DOWN).all() and (cut[~during] == plots.UP).all()
+    # 1 at (0, 0) and 16 at (180, 180): 255 m apart, beyond the 150 m range, whatever the faults.
+    assert (h.state[:, pair[1, 16]] == plots.DOWN).all()
+    assert (h.state[:, pair[5, 6]] == plots.UP).all()  # 60 m apart, in none of the faults
+
+
+def test_stagger_stacks_only_what_overlaps():
+    assert plots.stagger([0, 1, 2.5, 0.5], [2, 3, 4, 5]) == [0, 2, 0, 1]  # placed in order of left edge
+    assert plots.stagger([0, 2], [1, 3], pad=0.5) == [0, 0]
+    assert plots.stagger([0, 2], [1, 3], pad=1.5) == [0, 1]
+
+
+def test_a_burst_of_faults_is_grouped_within_the_level_limit():
+    t = np.r_[np.full(30, 10.0), 50.0]  # 30 faults in one tick, then one alone
+    labels = plots.fault_labels(t, width=lambda s: 0.5 * len(s), pad=0.1, max_levels=4)
+    assert max(level for _, _, level, _ in labels) < 4
+    assert sorted(i for *_, members in labels for i in members) == list(range(31))
+    assert ("31", 50.0, 0, [30]) in labels
+    assert any("-" in text for text, *_ in labels)
