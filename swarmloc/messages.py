@@ -109,11 +109,13 @@ Version = Annotated[dict, VersionMap]
 
 @message("beacon")
 class Beacon:
-    """Periodic hello: who I am, where I think I am (neighbour discovery) and, for UKF-DCL,
-    my version, so a neighbour that is ahead can be asked for the commits I missed."""
+    """Periodic hello: who I am, where I think I am and how sure I am of it (neighbour
+    discovery, and anchors for a lost neighbour finding itself again) and, for UKF-DCL, my
+    version, so a neighbour that is ahead can be asked for the commits I missed."""
 
     k: Tick
     position: Vec
+    cov: SqMat  # covariance of position
     version: Version
 
 

@@ -85,5 +85,6 @@ def make_nodes(algorithm: str, scenario, ids: Iterable[int] | None = None) -> di
     from swarmloc.estimators import NODE_TYPES
 
     cls = NODE_TYPES[algorithm]
-    kwargs = {"spread": scenario.estimation.spread} if algorithm == "ukf-dcl" else {}
+    est = scenario.estimation
+    kwargs = {"spread": est.spread, "rejoin_std": est.rejoin_std} if algorithm == "ukf-dcl" else {}
     return {a: cls(a, *scenario.prior(a), scenario.agent(a).model, **kwargs) for a in ids or scenario.agent_ids}

@@ -126,6 +126,10 @@ class Estimation(_Strict):
                                 "which makes NEES read low until the process noise dominates)")
     spread: float | None = Field(None, gt=0, description="unscented transform spread n + lambda; default: "
                                  "twice the state dimension (no negative sigma weight)")
+    rejoin_std: float | None = Field(15.0, gt=0, description="UKF-DCL: a node whose position std (largest axis, m) "
+                                     "exceeds this is lost (a restart, a long isolation): it takes no range into its "
+                                     "filter until a window of ranges pins its position down by multilateration; "
+                                     "null: never")
 
 
 ESTIMATORS = ("il", "ukf-dcl", "ukf-ccl")

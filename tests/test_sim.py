@@ -12,7 +12,7 @@ from swarmloc.node import RadioTx
 
 
 def beacon(src, seq):
-    return RadioTx(src, None, seq, wire.encode(Beacon(0, np.zeros(2), {}), src, seq))
+    return RadioTx(src, None, seq, wire.encode(Beacon(0, np.zeros(2), np.eye(2), {}), src, seq))
 
 
 def test_link_table_before_first_tick_and_after_rounds_goes_on_the_wire():

@@ -49,25 +49,28 @@ def _arr(a):
     return wire.Array(1).encode(np.asarray(a, float))
 
 
+_COV = wire.Array(2).encode(np.eye(2))
+
+
 @pytest.mark.parametrize(
     "data, reason",
     [
         (b"\x00\xff\x13garbage", "not MessagePack"),
         (msgpack.packb([1, 2, 3]), "not an envelope"),
         (msgpack.packb({"v": 2, "type": "beacon", "src": 1, "seq": 1, "body": {}}), "schema version"),
-        (_envelope({"k": 1, "version": {}, "position": _arr([0, 0])}, "no.such.type"), "unknown message type"),
-        (_envelope({"k": "one", "version": {}, "position": _arr([0, 0])}), "body.k: expected int"),
-        (_envelope({"k": True, "version": {}, "position": _arr([0, 0])}), "body.k: expected int"),
-        (_envelope({"k": 1, "version": {}, "position": _arr([0, math.nan])}), "body.position: non-finite"),
-        (_envelope({"k": 1, "version": {}, "position": _arr([0, math.inf])}), "body.position: non-finite"),
-        (_envelope({"k": 1, "version": {}, "position": wire.Array(2).encode(np.eye(2))}), "body.position: bad shape"),
-        (_envelope({"k": 1, "version": {}, "position": {"dtype": "<i8", "shape": [2], "data": b"\0" * 16}}), "dtype"),
-        (_envelope({"k": 1, "version": {}, "position": {"dtype": "<f8", "shape": [3], "data": b"\0" * 16}}), "data length"),
-        (_envelope({"k": 1, "version": {}}), "missing fields"),
-        (_envelope({"k": 1, "version": {3: 0}, "position": _arr([0, 0])}), r"body.version\[3\]: 0 out of range"),
-        (_envelope({"k": 1, "version": {}, "position": _arr([0, 0]), "extra": 1}), "unknown fields"),
+        (_envelope({"cov": _COV, "k": 1, "version": {}, "position": _arr([0, 0])}, "no.such.type"), "unknown message type"),
+        (_envelope({"cov": _COV, "k": "one", "version": {}, "position": _arr([0, 0])}), "body.k: expected int"),
+        (_envelope({"cov": _COV, "k": True, "version": {}, "position": _arr([0, 0])}), "body.k: expected int"),
+        (_envelope({"cov": _COV, "k": 1, "version": {}, "position": _arr([0, math.nan])}), "body.position: non-finite"),
+        (_envelope({"cov": _COV, "k": 1, "version": {}, "position": _arr([0, math.inf])}), "body.position: non-finite"),
+        (_envelope({"cov": _COV, "k": 1, "version": {}, "position": wire.Array(2).encode(np.eye(2))}), "body.position: bad shape"),
+        (_envelope({"cov": _COV, "k": 1, "version": {}, "position": {"dtype": "<i8", "shape": [2], "data": b"\0" * 16}}), "dtype"),
+        (_envelope({"cov": _COV, "k": 1, "version": {}, "position": {"dtype": "<f8", "shape": [3], "data": b"\0" * 16}}), "data length"),
+        (_envelope({"cov": _COV, "k": 1, "version": {}}), "missing fields"),
+        (_envelope({"cov": _COV, "k": 1, "version": {3: 0}, "position": _arr([0, 0])}), r"body.version\[3\]: 0 out of range"),
+        (_envelope({"cov": _COV, "k": 1, "version": {}, "position": _arr([0, 0]), "extra": 1}), "unknown fields"),
         (b"\x91" * (wire.MAX_FRAME_BYTES + 1), "exceeds"),
-        (_envelope({"k": 1, "version": {}, "position": {"dtype": "<f8", "shape": [2**63], "data": b""}}), "bad shape"),
+        (_envelope({"cov": _COV, "k": 1, "version": {}, "position": {"dtype": "<f8", "shape": [2**63], "data": b""}}), "bad shape"),
     ],
 )
 def test_bad_frames_are_rejected_with_reason(data, reason):
@@ -78,7 +81,7 @@ def test_bad_frames_are_rejected_with_reason(data, reason):
 def test_oversized_array_rejected_even_inside_frame_limit():
     big = {"dtype": "<f8", "shape": [5000], "data": b"\0" * 8 * 5000}
     with pytest.raises(wire.WireError, match="bad shape|exceed"):
-        wire.decode(_envelope({"k": 1, "version": {}, "position": big}))
+        wire.decode(_envelope({"cov": _COV, "k": 1, "version": {}, "position": big}))
 
 
 def test_unexpected_type_rejected_where_not_expected():

@@ -48,6 +48,7 @@ import numpy as np
 from swarmloc import kalman
 from swarmloc.messages import (CHAIN_OK, CHAIN_REFUSED, CHAIN_UNREACHABLE, CHAIN_VERSION, Beacon, DclCommit, DclLog,
                                DclStart, DclSync, DclToken, Sensors)
+from swarmloc.estimators.rejoin import Multilateration
 from swarmloc.models import Range
 from swarmloc.node import Estimate, Node, Send, odometry_of
 
@@ -63,8 +64,13 @@ GIVE_UP_TICKS = 40  # a commit whose history never arrives makes the node an orp
 class UkfDclNode(Node):
     algorithm = "ukf-dcl"
 
-    def __init__(self, aid, x0, P0, model="planar-speed-heading", spread: float | None = None, max_retries: int = 3):
+    def __init__(self, aid, x0, P0, model="planar-speed-heading", spread: float | None = None, max_retries: int = 3,
+                 rejoin_std: float | None = 15.0):
         super().__init__(aid, x0, P0, model)
+        self.rejoin_std = rejoin_std
+        self.lost = False  # position too uncertain to linearize a range at: finding itself (rejoin.py)
+        self.finder = Multilateration(self.model.position_dim)
+        self.lost_ranges: list[tuple[int, int, float, float]] = []  # own ranges while lost: (k, target, r, var)
         self.max_retries = max_retries
         self.retries: dict[tuple, int] = {}  # (message type, dst, k, epoch) -> resends so far
         self.ut = kalman.UnscentedTransform.for_pair(self.model.state_dim, spread)
@@ -83,13 +89,14 @@ class UkfDclNode(Node):
         self.epoch = 0
         self.pending: dict[Key, tuple[np.ndarray, np.ndarray]] = {}  # own measurements not yet finished
         self.known_pending: set[Key] = set()  # keys of this tick seen from others
-        self.beacons: dict[int, dict[int, np.ndarray]] = {}  # j -> {tick: position}
+        self.beacons: dict[int, dict[int, tuple[np.ndarray, np.ndarray]]] = {}  # j -> {tick: (position, cov)}
         self.neighbours: dict[int, np.ndarray] = {}  # snapshot for this tick
         self.held: list[tuple[int, object]] = []  # early frames: (src, msg)
         self.seen: set[tuple] = set()  # fingerprints of chain frames handled, this tick and later
         self.reruns: dict[Key, int] = {}  # version reruns per chain key (this tick)
         self.stats = {"chains_committed": 0, "measurements_used": 0, "measurements_dropped": 0,
-                      "outsider_commits": 0, "commits_replayed": 0, "orphaned": 0, "orphans_removed": 0}
+                      "outsider_commits": 0, "commits_replayed": 0, "orphaned": 0, "orphans_removed": 0,
+                      "lost": 0, "refound": 0}
 
     # ------------------------------------------------------------------ state
 
@@ -104,6 +111,9 @@ class UkfDclNode(Node):
         self.row = {self.id: np.array(P, float)}
         self.version, self.waiting, self.busy = {}, {}, False
         self.orphan, self.orphan_base = True, self.row[self.id].copy()
+        self.lost = False  # decided again at the first tick, after the missed ticks' inflation
+        self.finder.clear()
+        self.lost_ranges.clear()
 
     def _block(self, j: int) -> np.ndarray:
         b = self.row.get(j)
@@ -130,8 +140,10 @@ class UkfDclNode(Node):
         # F = I: prediction leaves every cross-covariance as it is, so it commutes with commits
         # applied late (their outsider part reads only cross-covariances).
         x, _, Q = self.model.predict(self.x, odometry_of(sensors))
+        moved = self.model.position(x) - self.model.position(self.x)
         self.x = x
         self.row[self.id] = self.row[self.id] + Q
+        self._track_lost(moved, Q)
         self._apply_ready()
         stuck = [c for c in self.waiting.values() if c.k < self.k - GIVE_UP_TICKS]
         if stuck:
@@ -145,19 +157,25 @@ class UkfDclNode(Node):
         lo = self.k - NEIGHBOUR_TICKS
         for j in list(self.beacons):
             self.beacons[j] = {t: p for t, p in self.beacons[j].items() if t >= lo}
-        self.neighbours = {j: b[max(t for t in b if t < self.k)] for j, b in self.beacons.items()
+        self.neighbours = {j: b[max(t for t in b if t < self.k)][0] for j, b in self.beacons.items()
                            if any(t < self.k for t in b)}
+        self._find_self()
 
         counts: dict[int, int] = {}
         for r in sensors.ranges:
             q = counts.get(r.target, 0)
             counts[r.target] = q + 1
+            if self.lost and r.target != self.id:
+                self.lost_ranges.append((self.k, r.target, r.range, r.std**2))  # anchored when its beacon is in
+                continue
             if r.target == self.id or r.target not in self.neighbours:
                 self.stats["measurements_dropped"] += 1  # cannot reach the measured platform
                 continue
             self.pending[(self.id, r.target, q)] = (np.array([r.range]), np.array([[r.std**2]]))
 
-        out: list[Send] = [Send(Beacon(self.k, self.model.position(self.x).copy(), dict(self.version)), None)]
+        p = self.model.position_dim
+        out: list[Send] = [Send(Beacon(self.k, self.model.position(self.x).copy(), self.row[self.id][:p, :p].copy(),
+                                       dict(self.version)), None)]
         out += self._start_next()
         out += self._release_held()
         return out
@@ -183,8 +201,9 @@ class UkfDclNode(Node):
 
     def receive(self, src, msg) -> list[Send]:
         if isinstance(msg, Beacon):
-            if msg.position.shape == (self.model.position_dim,) and src != self.id:
-                self.beacons.setdefault(src, {})[msg.k] = msg.position
+            p = self.model.position_dim
+            if msg.position.shape == (p,) and msg.cov.shape == (p, p) and src != self.id:
+                self.beacons.setdefault(src, {})[msg.k] = (msg.position, msg.cov)
                 return self._on_version(src, msg.version)
             return self.drop("shape", "beacon")
         if isinstance(msg, DclSync):
@@ -283,6 +302,12 @@ class UkfDclNode(Node):
         pending = {tuple(k) for k in msg.pending} | set(self.pending)
         version, orphans = self._report()
         head = ([m, n], {n: m}, {m: msg.version, n: version}, ([m] if msg.orphan else []) + orphans, pending)
+        if self.lost:
+            # Not a range to linearize at our mean; an anchor to find ourselves with. The chain
+            # runs empty so the keys it preempted get their turn.
+            p = self.model.position_dim
+            self.finder.add(self.k, self.model.position(msg.x_m), msg.row_m[m][:p, :p], float(msg.z[0]), float(msg.R[0, 0]))
+            return self._forward(self._token(key, CHAIN_UNREACHABLE, *head))
         if head[3]:
             return self._forward(self._token(key, CHAIN_REFUSED, *head))  # m removes the orphans first
         if msg.version != self.version:
@@ -591,6 +616,54 @@ class UkfDclNode(Node):
         self.row = {self.id: self.row[self.id]}
         self.orphan, self.orphan_base = True, self.row[self.id].copy()
         self.stats["orphaned"] += 1
+
+    # ------------------------------------------------------------------ lost and found
+
+    def _track_lost(self, moved: np.ndarray, Q: np.ndarray) -> None:
+        """Once per tick, after the time update: become lost when the position is too uncertain,
+        and while lost, log the move so ranges of earlier ticks can be tied to the position now."""
+        p = self.model.position_dim
+        if not self.lost and self.rejoin_std is not None:
+            if np.linalg.eigvalsh(self.row[self.id][:p, :p]).max() > self.rejoin_std**2:
+                self.lost = True
+                self.stats["lost"] += 1
+                self.finder.clear()
+                self.lost_ranges.clear()
+                log.warning("node %s is lost (position std above %.1f m): finding itself by multilateration",
+                            self.id, self.rejoin_std)
+        if self.lost:
+            self.finder.moved(self.k, moved, Q[:p, :p])
+
+    def _find_self(self) -> None:
+        """Anchor the ranges of earlier ticks with the neighbours' beacons of those ticks, and try
+        the window. A fix replaces our position: we become an orphan with it as our block, so the
+        next chain that meets us removes us from the others' rows with a covariance-intersection
+        bound, as after a restart, and from then on we fuse ranges again."""
+        if not self.lost:
+            return
+        for k, j, r, var in self.lost_ranges:
+            beacon = self.beacons.get(j, {}).get(k)
+            if beacon is not None:
+                self.finder.add(k, beacon[0], beacon[1], r, var)
+        self.lost_ranges = [(k, j, r, var) for k, j, r, var in self.lost_ranges
+                            if k not in self.beacons.get(j, {}) and k >= self.k - NEIGHBOUR_TICKS]
+        fix = self.finder.solve(self.model.position(self.x))
+        # Half the threshold: the covariance-intersection removal that follows scales the block
+        # by the group's size, and a fix that leaves us lost again is no fix.
+        if fix is None or np.linalg.eigvalsh(fix.cov).max() > (self.rejoin_std / 2) ** 2:
+            return
+        p = self.model.position_dim
+        self._make_orphan("position found again by multilateration")
+        x, P = self.x.copy(), self.row[self.id].copy()
+        x[:p], P[:p, :], P[:, :p] = fix.position, 0.0, 0.0
+        P[:p, :p] = fix.cov
+        self.x, self.row[self.id] = x, P
+        self.orphan_base = P.copy()
+        self.lost = False
+        self.finder.clear()
+        self.stats["refound"] += 1
+        log.warning("node %s found itself from %d ranges: position %s, std %.2f m", self.id, fix.ranges,
+                    np.round(fix.position, 2), float(np.sqrt(np.trace(fix.cov))))
 
     # ------------------------------------------------------------------ catching up
 
