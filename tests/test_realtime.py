@@ -57,3 +57,48 @@ def test_realtime_lossy_partitioned_monte_carlo(cli, tmp_path):
     assert inside["ukf-dcl"] >= inside["ukf-ccl"] - 0.05, inside
     assert np.mean(err["ukf-dcl"]) < np.mean(err["il"]), err
     assert min(used) > 10  # chains did complete in real time
+
+
+def test_realtime_starved_agent_is_slow_not_dead(cli, tmp_path):
+    """A reproducible starvation: agent 2's process is stopped (SIGSTOP) for 0.3 s of every
+    0.6 s, six ticks at a time at speed 10, through loss and a partition that heals. A slow
+    node is not a dead one: no agent loses its cross-covariances (orphan), none is declared
+    unresponsive, every agent has an estimate at every tick, and chains still complete."""
+    import os
+    import signal
+    import time
+
+    from test_processes import find_pid
+
+    for seed in range(2):
+        sc = S.load("wang2019").with_overrides(
+            seed=seed, **{"clock.mode": "realtime", "clock.speed": 10.0, "clock.duration": 40.0,
+                          "sensors.range.probability": 0.8},
+            faults=[{"at": 0.0, "action": "loss", "probability": 0.2},
+                    {"at": 15.0, "action": "partition", "groups": [[1, 2], [3, 4]]}, {"at": 25.0, "action": "heal"}])
+        path = tmp_path / f"st{seed}.yaml"
+        path.write_text(sc.to_yaml())
+        out = tmp_path / f"starved{seed}"
+        run = cli.start_run(str(path), out)
+        cli.wait_tick(5, run)
+        pid = find_pid(cli.swarm, 2)
+        stops = 0
+        try:
+            while run.poll() is None:
+                os.kill(pid, signal.SIGSTOP)
+                time.sleep(0.3)
+                os.kill(pid, signal.SIGCONT)
+                stops += 1
+                time.sleep(0.3)
+        except ProcessLookupError:
+            pass  # the run ended and took the agent with it
+        stdout, stderr = run.communicate(timeout=120)
+        assert run.returncode == 0, stderr
+        assert stops >= 3
+        m = json.loads((out / "metrics.json").read_text())
+        stats = m["agent_stats"]
+        assert m["unresponsive_agents"] == [] and len(stats) == 4
+        assert sum(s["orphaned"] for s in stats.values()) == 0, {a: s["orphaned"] for a, s in stats.items()}
+        assert sum(s["measurements_used"] for s in stats.values()) > 10
+        with np.load(out / "estimates" / "ukf-dcl.npz") as d:
+            assert not np.isnan(d["mean"][1:]).any()
