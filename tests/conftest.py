@@ -95,6 +95,23 @@ def swarm_pids(swarm: str) -> list[int]:
     return out
 
 
+def agent_pid(swarm: str, agent_id: int) -> int:
+    """The process of one agent of a run."""
+    for pid in swarm_pids(swarm):
+        try:
+            cmd = (Path("/proc") / str(pid) / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if b"--id" in cmd and cmd[cmd.index(b"--id") + 1] == str(agent_id).encode():
+            return pid
+    raise AssertionError(f"agent {agent_id} not running")
+
+
+def netsim_pid(swarm: str) -> int:
+    (pid,) = [p for p in swarm_pids(swarm) if b"netsim" in (Path("/proc") / str(p) / "cmdline").read_bytes().split(b"\0")]
+    return pid
+
+
 class NetsimClient:
     """A Zenoh client of a running netsim's control queryable (fast polling for tests)."""
 

@@ -66,15 +66,15 @@ def test_large_frames_are_dropped_before_they_are_buffered(cli, tmp_path):
     the memory (before the fix: agent 88 -> 160 MB, netsim 67 -> 280 MB)."""
     import zenoh
 
-    from conftest import swarm_pids
+    from conftest import agent_pid, netsim_pid
     from swarmloc import wire
-    from test_processes import find_pid, long_scenario
+    from test_processes import long_scenario
 
     _, path = long_scenario(tmp_path)
     run = cli.start_run(str(path), tmp_path / "run")
     cli.wait_tick(20, run)
-    agent = find_pid(cli.swarm, 2)
-    netsim = next(p for p in swarm_pids(cli.swarm) if b"netsim" in Path(f"/proc/{p}/cmdline").read_bytes())
+    agent = agent_pid(cli.swarm, 2)
+    netsim = netsim_pid(cli.swarm)
     keys = wire.Keys(cli.swarm)
     session = zenoh.open(zenoh.Config.from_json5(wire.zenoh_config("client", connect=[cli.endpoint])))
     pubs = [session.declare_publisher(k, **wire.publisher_options(zenoh)) for k in (keys.radio_rx(2), keys.radio_tx(2))]

@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from conftest import swarm_pids
+from conftest import agent_pid, netsim_pid, swarm_pids
 from swarmloc import scenario as S
 
 
@@ -19,22 +19,6 @@ def scenario_file(tmp_path, duration):
     path = tmp_path / f"wang2019-{duration:g}.yaml"
     path.write_text(S.load("wang2019").with_overrides(**{"clock.duration": duration}).to_yaml())
     return path
-
-
-def agent_pid(swarm, agent_id):
-    for pid in swarm_pids(swarm):
-        try:
-            cmd = open(f"/proc/{pid}/cmdline", "rb").read().split(b"\0")
-        except OSError:
-            continue
-        if b"--id" in cmd and cmd[cmd.index(b"--id") + 1] == str(agent_id).encode():
-            return pid
-    raise AssertionError(f"agent {agent_id} not running")
-
-
-def netsim_pid(swarm):
-    (pid,) = [p for p in swarm_pids(swarm) if b"netsim" in open(f"/proc/{p}/cmdline", "rb").read().split(b"\0")]
-    return pid
 
 
 def eventually(predicate, what, timeout=15.0):

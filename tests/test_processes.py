@@ -6,7 +6,6 @@ import signal
 import subprocess
 import time
 
-import msgpack
 import numpy as np
 import pytest
 import zenoh
@@ -15,7 +14,7 @@ from conftest import swarm_pids
 from helpers import ccl_without, centralized, in_process
 from swarmloc import scenario as S
 from swarmloc import wire
-from swarmloc.messages import Beacon, DclToken, Reply
+from swarmloc.messages import Reply
 
 pytestmark = pytest.mark.slow
 TOL = 1e-9
@@ -99,17 +98,6 @@ def test_inject_cut_and_restore_live(cli, tmp_path):
     sensors = frames_from_arrays(load_npz(out / "sensors.npz"))
     expected = ccl_without(sc, sensors, lambda k, a, b: {a, b} == {1, 2} and kc <= k <= kr)
     assert np.abs(load_npz(out / "estimates" / "ukf-dcl.npz")["mean"] - expected).max() < TOL
-
-
-def find_pid(swarm, agent_id):
-    for pid in swarm_pids(swarm):
-        try:
-            cmd = open(f"/proc/{pid}/cmdline", "rb").read().split(b"\0")
-        except OSError:
-            continue
-        if b"--id" in cmd and cmd[cmd.index(b"--id") + 1] == str(agent_id).encode():
-            return pid
-    raise AssertionError(f"agent {agent_id} not running")
 
 
 def wait_gone(swarm, timeout=15.0):

@@ -68,7 +68,7 @@ def test_realtime_starved_agent_is_slow_not_dead(cli, tmp_path):
     import signal
     import time
 
-    from test_processes import find_pid
+    from conftest import agent_pid
 
     for seed in range(2):
         sc = S.load("wang2019").with_overrides(
@@ -81,7 +81,7 @@ def test_realtime_starved_agent_is_slow_not_dead(cli, tmp_path):
         out = tmp_path / f"starved{seed}"
         run = cli.start_run(str(path), out)
         cli.wait_tick(5, run)
-        pid = find_pid(cli.swarm, 2)
+        pid = agent_pid(cli.swarm, 2)
         stops = 0
         try:
             while run.poll() is None:
