@@ -49,6 +49,7 @@ class AgentConfig:
 class AgentDaemon:
     def __init__(self, node: Node, cfg: AgentConfig):
         self.node, self.cfg = node, cfg
+        node.synchronous = False  # until netsim's clock says lockstep: direct mode never does
         self.keys = wire.Keys(cfg.swarm)
         self.inbox: queue.SimpleQueue = queue.SimpleQueue()
         self.outbox = Outbox(node.id)
@@ -166,6 +167,7 @@ class AgentDaemon:
             env = self._envelope(kind, data, (Clock,))
             if env is None:
                 return None
+            self.node.synchronous = env.body.mode == "lockstep"
             if env.body.mode == "stop":
                 if self.cfg.exit_on_stop:
                     self._stop.set()

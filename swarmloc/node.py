@@ -45,6 +45,10 @@ class Node:
     """Base class: identity, model, estimate and the drop counter shared by every algorithm."""
 
     algorithm: str = ""
+    # Whether a tick is over for everyone when the next one starts (lockstep: the emulator
+    # waits until the swarm is quiet). The driver says so; with a real-time or physical clock a
+    # frame of the last tick may still be on its way.
+    synchronous: bool = True
 
     def __init__(self, aid: int, x0, P0, model: MotionModel | str = "planar-speed-heading"):
         self.id = int(aid)

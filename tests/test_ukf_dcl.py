@@ -364,3 +364,53 @@ def test_restarted_agent_finds_itself_and_beats_dead_reckoning(seed):
     for i in (0, 1):
         e = np.linalg.norm(dcl.mean[-150:, i] - record.truth_array()[-150:, i], axis=1).mean()
         assert e < np.linalg.norm(il.mean[-150:, i] - record.truth_array()[-150:, i], axis=1).mean()
+
+
+class LateCommits:
+    """The scenario's radio, except that commits to `victim` arrive one tick late, after the
+    next tick's chains are already under way: what a starved process sees in real time."""
+
+    def __init__(self, sim, victim):
+        self.sim, self.victim = sim, victim
+        self.late, self.calls, self.k = [], 0, None
+
+    def __getattr__(self, name):
+        return getattr(self.sim, name)
+
+    def exchange(self, frames):
+        if self.sim.k != self.k:
+            self.k, self.calls, due = self.sim.k, 0, self.late
+            self.late = []
+        else:
+            due = []
+        self.calls += 1
+        out = []
+        for rx in self.sim.exchange(frames):
+            if rx.receiver == self.victim and rx.data is not None and isinstance(wire.decode(rx.data).body, DclCommit):
+                self.late.append(rx)
+            else:
+                out.append(rx)
+        if self.calls == 2:  # the new tick's chains have started: now the old commits come
+            out += due
+        return out
+
+
+@pytest.mark.parametrize("synchronous, orphans", [(False, False), (True, True)])
+def test_late_commit_after_a_new_tick_orphans_nobody(synchronous, orphans):
+    """A node that reported to a chain and moved to the next tick before the chain's commit
+    came holds (refuses new chains, is an outsider to others) until it comes: no orphan.
+    Treating the tick as over (synchronous, right only in lockstep) orphans it."""
+    sc = S.load("wang2019").with_overrides(**{"clock.duration": 40.0, "sensors.range.probability": 1.0})
+    nodes = make_nodes("ukf-dcl", sc)
+    for n in nodes.values():
+        n.synchronous = synchronous
+    InProcessRunner(LateCommits(Simulation(sc), victim=2), nodes).run()
+    orphaned = sum(n.stats["orphaned"] for n in nodes.values())
+    assert (orphaned > 0) == orphans, orphaned
+    if not orphans:
+        assert sum(n.stats["refused_holding"] for n in nodes.values()) > 0
+        assert sum(n.stats["measurements_used"] for n in nodes.values()) > 40
+        for a in nodes:
+            for b in nodes:
+                if nodes[a].version == nodes[b].version:
+                    np.testing.assert_allclose(nodes[a]._block(b), nodes[b]._block(a).T, atol=1e-9)

@@ -58,7 +58,8 @@ NEIGHBOUR_TICKS = 3
 VERSION_RETRIES = 2  # chain reruns when m and n are at different versions
 LOG_COMMITS = 2048  # applied commits kept to replay to nodes that missed them
 LOG_BATCH = 16  # commits per dcl.log frame
-GIVE_UP_TICKS = 40  # a commit whose history never arrives makes the node an orphan after this
+GIVE_UP_TICKS = 40
+HOLD_TICKS = 10  # real time: longest wait for the commit of a chain we reported to  # a commit whose history never arrives makes the node an orphan after this
 
 
 class UkfDclNode(Node):
@@ -84,7 +85,10 @@ class UkfDclNode(Node):
         self.orphan_base: np.ndarray | None = None  # own block when we became an orphan
         self.log: deque[DclCommit] = deque(maxlen=LOG_COMMITS)  # applied, in order
         self.waiting: dict[tuple[int, int], DclCommit] = {}  # (measurer, seq) -> not yet applicable
-        self.busy = False  # reported our version to this epoch's chain, whose commit has not come
+        # The chain we reported our version to and whose commit has not come: (k, epoch, key,
+        # m's own version count at the report). Until it comes we apply no other commit, so the
+        # report stays true; a report to two chains at one version would make one inapplicable.
+        self.reported: tuple | None = None
         self.asked: set[int] = set()  # neighbours asked for commits this tick
         self.epoch = 0
         self.pending: dict[Key, tuple[np.ndarray, np.ndarray]] = {}  # own measurements not yet finished
@@ -96,7 +100,7 @@ class UkfDclNode(Node):
         self.reruns: dict[Key, int] = {}  # version reruns per chain key (this tick)
         self.stats = {"chains_committed": 0, "measurements_used": 0, "measurements_dropped": 0,
                       "outsider_commits": 0, "commits_replayed": 0, "orphaned": 0, "orphans_removed": 0,
-                      "lost": 0, "refound": 0}
+                      "lost": 0, "refound": 0, "refused_holding": 0, "holds_expired": 0}
 
     # ------------------------------------------------------------------ state
 
@@ -109,7 +113,7 @@ class UkfDclNode(Node):
         intersection) when a chain next meets it, and it catches up on versions meanwhile."""
         self.k, self.x = int(k), np.array(x, float)
         self.row = {self.id: np.array(P, float)}
-        self.version, self.waiting, self.busy = {}, {}, False
+        self.version, self.waiting, self.reported = {}, {}, None
         self.orphan, self.orphan_base = True, self.row[self.id].copy()
         self.lost = False  # decided again at the first tick, after the missed ticks' inflation
         self.finder.clear()
@@ -130,7 +134,8 @@ class UkfDclNode(Node):
         gap = self.missed_motion(sensors)
         if gap is not None:
             self.row[self.id] = self.row[self.id] + gap
-        self.k, self.epoch, self.busy = sensors.k, 0, False
+        self.k, self.epoch = sensors.k, 0
+        self._settle_report()
         self.pending.clear()
         self.known_pending.clear()
         self.retries.clear()
@@ -191,8 +196,10 @@ class UkfDclNode(Node):
         key = min(self.pending)
         if key != self._min_pending():
             return []
+        if self._holding():
+            return []  # our own chain would be computed at a version we already reported elsewhere
         z, R = self.pending[key]
-        self.busy = True
+        self.reported = (self.k, self.epoch, key, None)
         msg = DclStart(self.k, self.epoch, list(key), z, R, self.x.copy(), dict(self.row), dict(self.version),
                        self.orphan, [list(k) for k in sorted(self.pending)])
         return [Send(msg, key[1])]
@@ -204,16 +211,21 @@ class UkfDclNode(Node):
             p = self.model.position_dim
             if msg.position.shape == (p,) and msg.cov.shape == (p, p) and src != self.id:
                 self.beacons.setdefault(src, {})[msg.k] = (msg.position, msg.cov)
-                return self._on_version(src, msg.version)
+                out = self._on_version(src, msg.version)
+                if self.reported is not None and msg.k > self.reported[0]:
+                    out += self._resolve_report(src, m_version=msg.version)
+                return out
             return self.drop("shape", "beacon")
         if isinstance(msg, DclSync):
             return self._on_sync(src, msg)
         if isinstance(msg, DclLog):
             self.stats["commits_replayed"] += len(msg.commits)
+            out = []
             for c in msg.commits:
                 if self._valid_commit(c):
                     self._deliver(c)
-            return []
+                    out += self._resolve_report(c.key[0], commit=c)
+            return out
         if not isinstance(msg, (DclStart, DclToken, DclCommit)):
             return self.drop("unexpected-type", type(msg).__name__)
         # A radio may deliver a frame twice; a second copy of a chain step would run the chain
@@ -270,11 +282,47 @@ class UkfDclNode(Node):
 
     # ------------------------------------------------------------------ chain steps
 
-    def _report(self) -> tuple[dict, list[int]]:
+    @property
+    def busy(self) -> bool:
+        return self.reported is not None
+
+    def _report(self, key, m_version: dict) -> tuple[dict, list[int]]:
         """What this node adds to a chain: its version, and its id if it is an orphan. Until
-        this epoch's commit (or the next tick) it applies nothing else, so the report stays true."""
-        self.busy = True
+        the chain's commit it applies nothing else, so the report stays true."""
+        self.reported = (self.k, self.epoch, tuple(key), m_version.get(key[0], 0))
         return dict(self.version), ([self.id] if self.orphan else [])
+
+    def _holding(self) -> bool:
+        """Reported to a chain of an earlier tick whose commit may still come (real time)."""
+        return self.reported is not None and self.reported[0] < self.k
+
+    def _settle_report(self) -> None:
+        """A new tick. In lockstep every chain of the last tick is over: committed or dead. With
+        an asynchronous clock the commit of the chain we reported to may still be on its way;
+        we hold (no other chain gets our version, none of ours starts) until it comes, until
+        the measurer's beacon shows it never committed, or for HOLD_TICKS at most."""
+        if self.reported is None:
+            return
+        k, _, key, m_seq = self.reported
+        if self.synchronous or m_seq is None or self.k - k > HOLD_TICKS:
+            if not self.synchronous and m_seq is not None:
+                self.stats["holds_expired"] += 1
+            self.reported = None
+
+    def _resolve_report(self, m: int, m_version: dict | None = None, commit: DclCommit | None = None) -> list[Send]:
+        """Release a hold when the chain's commit has come, or m's beacon of a later tick shows
+        m's own count unchanged since our report (m dropped the chain when its tick ended)."""
+        if not self._holding() or self.reported[2][0] != m:
+            return []
+        k, epoch, key, m_seq = self.reported
+        if commit is not None:
+            if (commit.k, commit.epoch, tuple(commit.key)) != (k, epoch, key):
+                return []
+        elif m_version is None or m_version.get(m, 0) != m_seq:
+            return []
+        self.reported = None
+        self._apply_ready()
+        return self._start_next() + self._release_held()
 
     def _token(self, key, status, order, parent, versions, orphans, pending, L=None, Y=None, Pz=None, nu=None,
                gains=None):
@@ -300,7 +348,12 @@ class UkfDclNode(Node):
             return self.drop("preempted", str(key))
 
         pending = {tuple(k) for k in msg.pending} | set(self.pending)
-        version, orphans = self._report()
+        if self._holding():
+            # Our version is promised to an earlier chain: this measurement is lost.
+            self.stats["refused_holding"] += 1
+            return self._forward(self._token(key, CHAIN_REFUSED, [m, n], {n: m}, {m: msg.version},
+                                             [m] if msg.orphan else [], pending))
+        version, orphans = self._report(key, msg.version)
         head = ([m, n], {n: m}, {m: msg.version, n: version}, ([m] if msg.orphan else []) + orphans, pending)
         if self.lost:
             # Not a range to linearize at our mean; an anchor to find ourselves with. The chain
@@ -345,11 +398,17 @@ class UkfDclNode(Node):
             return self.drop("preempted", str(key))
         if self.id in msg.order:
             return self._forward(msg)  # backtracking through us
-        version, orphans = self._report()
         pending = {tuple(k) for k in msg.pending} | set(self.pending)
+        if self._holding():
+            # No version from us: the measurer makes us an outsider, and we apply its commit
+            # (a Schmidt update) after the one we are holding for.
+            versions, orphans = msg.versions, [self.id] if self.orphan else []
+        else:
+            version, orphans = self._report(key, msg.versions.get(key[0], {}))
+            versions = {**msg.versions, self.id: version}
         token = DclToken(
             msg.k, msg.epoch, msg.key, msg.status, msg.L, msg.Y, msg.Pz, msg.nu, msg.order + [self.id],
-            {**msg.parent, self.id: src}, msg.gains, {**msg.versions, self.id: version}, msg.orphans + orphans,
+            {**msg.parent, self.id: src}, msg.gains, versions, msg.orphans + orphans,
             [list(k) for k in sorted(pending)],
         )
         return self._forward(token)
@@ -429,7 +488,7 @@ class UkfDclNode(Node):
         if isinstance(msg, DclStart):
             # The measured platform is out of reach: the measurement is lost, but the chain
             # still has to run (empty) so the keys it preempted get their turn.
-            version, orphans = self._report()
+            version, orphans = dict(self.version), [self.id] if self.orphan else []
             return self._forward(self._token(msg.key, CHAIN_UNREACHABLE, [self.id], {}, {self.id: version}, orphans,
                                              set(self.pending)))
         if msg.parent.get(self.id) == dst:
@@ -446,7 +505,8 @@ class UkfDclNode(Node):
         if msg.parent.get(self.id, key[0]) != src or (self.id != key[0] and self.id not in msg.parent):
             return self.drop("misrouted", f"commit {key}")
         self.epoch += 1
-        self.busy = False
+        if not self._holding():
+            self.reported = None
         if key in self.pending and msg.finished:
             del self.pending[key]
             self.stats["measurements_used" if msg.gains else "measurements_dropped"] += 1
@@ -469,7 +529,7 @@ class UkfDclNode(Node):
         out = [Send(msg, c) for c, p in sorted(msg.parent.items()) if p == self.id] \
             if msg.parent.get(self.id, msg.key[0]) == src else []
         self._deliver(msg)
-        return out
+        return out + self._resolve_report(msg.key[0], commit=msg)
 
     def _valid_transform(self, msg: DclToken | DclCommit) -> bool:
         """Shapes fit this swarm, L is a Cholesky factor (lower, positive diagonal), Pz is
