@@ -365,8 +365,17 @@ class NetsimServer:
         after = self.sim.faults.killed()
         for a in sorted(after - before):
             self._put(self.pub_events, Event("kill", a, t))
-        for a in sorted(before - after):
+        restarted = sorted(before - after)
+        for a in restarted:
             self._put(self.pub_events, Event("restart", a, t))
+        if restarted and self.mode == "lockstep":
+            # Lockstep does not run on without a restarting agent: the launcher starts its
+            # process on this event, and the agent takes this tick's frame when it is up.
+            if not self._pump(lambda: all(a in self.alive for a in restarted), self.cfg.join_timeout):
+                log.error("tick %d: restarted agents %s did not come back within %.0f s", k,
+                          [a for a in restarted if a not in self.alive], self.cfg.join_timeout)
+            for a in restarted:
+                self.joined_at[a] = min(self.joined_at[a], k)
         self._put(self.pub_clock, Clock(k, t, self.mode, self.sc.clock.dt))
         truth = self.sim.truth()
         for a in self.ids:

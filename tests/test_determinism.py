@@ -15,7 +15,7 @@ from swarmloc import scenario as S
 pytestmark = pytest.mark.slow
 
 
-def sixteen_agents(tmp_path, duration=30.0):
+def sixteen_agents(tmp_path, duration=22.0):
     """16 agents on a 4x4 grid, 40 m apart, a 100 m unit-disk radio; the grid splits into its
     left and right halves from 6 s to 16 s."""
     agents = [{"id": i + 1, "start": [40.0 * (i % 4), 40.0 * (i // 4)], "heading": 0.4 * i,

@@ -140,3 +140,21 @@ def test_kill_and_restart_agent(cli, tmp_path):
     assert not np.isnan(mean[:, [0, 1, 3], 0]).any()  # the others never stopped
     log = (out / "logs" / "agent-3.log").read_text()
     assert "resumed from its checkpoint" in log
+
+
+def test_lockstep_waits_for_a_restarting_agent(cli, tmp_path):
+    """In lockstep netsim does not run on while a restarted agent's process starts: the agent
+    takes the frame of the very tick it was restarted at, so its hole is the kill window."""
+    sc = S.load("wang2019").with_overrides(**{"clock.duration": 30.0},
+                                           faults=[{"at": 10.0, "action": "kill", "node": 3, "duration": 5.0}])
+    path = tmp_path / "kill.yaml"
+    path.write_text(sc.to_yaml())
+    out = tmp_path / "run"
+    cli.run("run", str(path), "--out", str(out), "--port", str(cli.port), "--swarm", cli.swarm, "--no-plots",
+            check=True, timeout=200)
+    with np.load(out / "estimates" / "ukf-dcl.npz") as e:
+        hole = np.flatnonzero(np.isnan(e["mean"][:, 2, 0]))
+    assert hole.tolist() == list(range(20, 30))  # killed at tick 20, back at tick 30
+    m = json.loads((out / "metrics.json").read_text())
+    assert {"k": 30, "agent": 3, "event": "joined"}.items() <= next(
+        e for e in m["agent_events"] if e["event"] == "joined").items()
