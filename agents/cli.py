@@ -168,7 +168,7 @@ def run(
 @app.command()
 def demo(out: Optional[Path] = OutOpt, seed: Optional[int] = SeedOpt, swarm: str = SwarmOpt, port: Optional[int] = PortOpt,
          plots: bool = PlotsOpt, force: bool = ForceOpt, restart_crashed: bool = RestartOpt):
-    """Run the built-in wang2019 scenario (UKF-DCL paper, 4 platforms, 800 ticks)."""
+    """Run the built-in wang2019 scenario (UKF-DCL paper, 4 platforms, 801 ticks)."""
     _run("wang2019", out, seed, swarm, port, plots, force, restart_crashed)
 
 
@@ -190,7 +190,7 @@ def agent(
                                                help="Zenoh endpoint to listen on (peer mode; repeatable)"),
     mode: Literal["client", "peer"] = typer.Option("client", "--mode", help="Zenoh mode: client (of netsim) or peer"),
     direct: bool = typer.Option(False, "--direct", help="no netsim: publish radio frames straight to peers"),
-    state_file: Optional[Path] = typer.Option(None, "--state-file", help="checkpoint every tick here; resume from it at start"),
+    state_file: Optional[Path] = typer.Option(None, "--state-file", help="checkpoint here (after a sensor frame, at most every 0.2 s); resume from it at start"),
     verbose: bool = typer.Option(False, "--verbose", "-v", help="log at INFO: what the agent waits for, what it does"),
 ):
     """Start one agent daemon (used by `run`; on a companion computer, run it by hand)."""
@@ -216,7 +216,7 @@ def agent(
         node = NODE_TYPES[algorithm](id, x0, np.eye(2) * initial_std**2)
     else:
         raise Failure("give --scenario or --start", 2)
-    cfg = AgentConfig(swarm=swarm, connect=tuple(connect or [DEFAULT_ENDPOINT]), listen=tuple(listen or ()), mode=mode,
+    cfg = AgentConfig(swarm=swarm, connect=tuple(connect or ([] if mode == "peer" and listen else [DEFAULT_ENDPOINT])), listen=tuple(listen or ()), mode=mode,
                       direct=direct, state_file=state_file)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     daemon = AgentDaemon(node, cfg)

@@ -36,6 +36,17 @@ class Estimate:
     cov: np.ndarray
 
 
+def keyed_ranges(measurer: int, sensors: Sensors):
+    """(key, range) for each range of a sensor frame, key = (measurer, measured, q), q counting
+    earlier ranges of the frame to the same platform. A tick's measurements apply in key order,
+    in a distributed chain and in the centralized reference alike: updates do not commute."""
+    counts: dict[int, int] = {}
+    for r in sensors.ranges:
+        q = counts.get(r.target, 0)
+        counts[r.target] = q + 1
+        yield (measurer, r.target, q), r
+
+
 def odometry_of(s: Sensors) -> Odometry:
     o = s.odometry
     return Odometry(o.dt, o.speed, o.heading, o.speed_std, o.heading_std)

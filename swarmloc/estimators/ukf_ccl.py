@@ -13,7 +13,7 @@ import scipy.linalg
 from swarmloc import kalman
 from swarmloc.messages import Sensors
 from swarmloc.models import MOTION_MODELS, Range
-from swarmloc.node import Estimate, odometry_of
+from swarmloc.node import Estimate, keyed_ranges, odometry_of
 
 
 class CentralizedUKF:
@@ -49,16 +49,9 @@ class CentralizedUKF:
 
     @staticmethod
     def measurements(frames: dict[int, Sensors]):
-        keyed = []
-        for m, s in frames.items():
-            counts: dict[int, int] = {}
-            for r in s.ranges:
-                q = counts.get(r.target, 0)
-                counts[r.target] = q + 1
-                if r.target != m:
-                    keyed.append(((m, r.target, q), np.array([r.range]), np.array([[r.std**2]])))
-        for (m, n, _), z, R in sorted(keyed, key=lambda t: t[0]):
-            yield m, n, z, R
+        keyed = [(key, r) for m, s in frames.items() for key, r in keyed_ranges(m, s) if r.target != m]
+        for (m, n, _), r in sorted(keyed, key=lambda t: t[0]):
+            yield m, n, np.array([r.range]), np.array([[r.std**2]])
 
     def update(self, m: int, n: int, z: np.ndarray, R: np.ndarray) -> None:
         S = kalman.permuted_cholesky(self.P, [self.index[m], self.index[n]], self.d)

@@ -50,7 +50,7 @@ from swarmloc.messages import (CHAIN_OK, CHAIN_REFUSED, CHAIN_UNREACHABLE, CHAIN
                                DclStart, DclSync, DclToken, Sensors)
 from swarmloc.estimators.rejoin import Multilateration
 from swarmloc.models import Range
-from swarmloc.node import Estimate, Node, Send, odometry_of
+from swarmloc.node import Estimate, Node, Send, keyed_ranges, odometry_of
 
 log = logging.getLogger(__name__)
 Key = tuple[int, int, int]
@@ -166,17 +166,14 @@ class UkfDclNode(Node):
                            if any(t < self.k for t in b)}
         self._find_self()
 
-        counts: dict[int, int] = {}
-        for r in sensors.ranges:
-            q = counts.get(r.target, 0)
-            counts[r.target] = q + 1
+        for key, r in keyed_ranges(self.id, sensors):
             if self.lost and r.target != self.id:
                 self.lost_ranges.append((self.k, r.target, r.range, r.std**2))  # anchored when its beacon is in
                 continue
             if r.target == self.id or r.target not in self.neighbours:
                 self.stats["measurements_dropped"] += 1  # cannot reach the measured platform
                 continue
-            self.pending[(self.id, r.target, q)] = (np.array([r.range]), np.array([[r.std**2]]))
+            self.pending[key] = (np.array([r.range]), np.array([[r.std**2]]))
 
         p = self.model.position_dim
         out: list[Send] = [Send(Beacon(self.k, self.model.position(self.x).copy(), self.row[self.id][:p, :p].copy(),
