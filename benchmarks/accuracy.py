@@ -5,10 +5,10 @@ Usage: python benchmarks/accuracy.py     (about a minute; in-process runner, no 
 
 from __future__ import annotations
 
-import os
 
-for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(var, "1")
+from swarmloc import pin_blas
+
+pin_blas()  # before numpy loads
 
 import numpy as np  # noqa: E402
 

@@ -21,8 +21,9 @@ from datetime import date
 from pathlib import Path
 from machine import cpu_model  # benchmarks/machine.py
 
-for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(var, "1")
+from swarmloc import pin_blas
+
+pin_blas()  # before numpy loads
 
 
 def zenoh_run(scenario: str, out: Path) -> dict:

@@ -19,8 +19,9 @@ from __future__ import annotations
 
 import os
 
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+from swarmloc import pin_blas
+
+pin_blas()  # before numpy loads
 
 import argparse
 import platform

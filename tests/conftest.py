@@ -1,4 +1,3 @@
-import os
 import socket
 import subprocess
 import sys
@@ -8,9 +7,9 @@ from pathlib import Path
 
 import pytest
 
-# Agent processes pin BLAS to one thread themselves; the test process should too.
-for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(var, "1")
+from swarmloc import pin_blas
+
+pin_blas()  # before numpy loads
 
 ROOT = Path(__file__).resolve().parent.parent
 
