@@ -167,7 +167,6 @@ class AgentDaemon:
             env = self._envelope(kind, data, (Clock,))
             if env is None:
                 return None
-            self.node.synchronous = env.body.mode == "lockstep"
             if env.body.mode == "stop":
                 if self.cfg.exit_on_stop:
                     self._stop.set()
@@ -175,6 +174,7 @@ class AgentDaemon:
                 self._reject("clock-replay", f"tick {env.body.k} after {self.clock_k}")
             else:
                 self.clock_k = env.body.k
+                self.node.synchronous = env.body.mode == "lockstep"
             return None
         if kind == "sensors":
             env = self._envelope(kind, data, (Sensors,))
