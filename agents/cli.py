@@ -185,7 +185,7 @@ def agent(
     algorithm: str = typer.Option("ukf-dcl", "--algorithm", help="ukf-dcl or il"),
     swarm: str = SwarmOpt,
     connect: Optional[list[str]] = typer.Option(None, "--connect", callback=_endpoints,
-                                                help=f"Zenoh endpoint to connect to (repeatable; default: {DEFAULT_ENDPOINT})"),
+                                                help=f"Zenoh endpoint to connect to (repeatable; default: {DEFAULT_ENDPOINT}, none for a peer with --listen)"),
     listen: Optional[list[str]] = typer.Option(None, "--listen", callback=_endpoints,
                                                help="Zenoh endpoint to listen on (peer mode; repeatable)"),
     mode: Literal["client", "peer"] = typer.Option("client", "--mode", help="Zenoh mode: client (of netsim) or peer"),
