@@ -12,7 +12,6 @@ import json
 import logging
 import math
 import re
-import signal
 import sys
 import time
 from pathlib import Path
@@ -22,6 +21,7 @@ import typer
 from typer.core import TyperGroup
 
 from agents.control import DEFAULT_ENDPOINT, ControlClient, Failure, NotRunning
+from swarmloc import exit_on_sigterm
 from swarmloc import scenario as scenarios
 from swarmloc import wire
 
@@ -218,7 +218,7 @@ def agent(
         raise Failure("give --scenario or --start", 2)
     cfg = AgentConfig(swarm=swarm, connect=tuple(connect or ([] if mode == "peer" and listen else [DEFAULT_ENDPOINT])), listen=tuple(listen or ()), mode=mode,
                       direct=direct, state_file=state_file)
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    exit_on_sigterm()
     daemon = AgentDaemon(node, cfg)
     daemon.resume()
     try:

@@ -258,7 +258,7 @@ def run_swarm(sc: Scenario, out: Path | None, swarm: str, port: int | None, plot
         registration.update(out=str(out.resolve()))
         procs = Swarm(out / "logs")
         try:
-            _start(procs, sc, out, swarm, endpoint, plots)
+            _start(procs, sc, out, swarm, endpoint, plots, restart_crashed)
             _watch(procs, sc, swarm, endpoint, restart_crashed)
         except Interrupted as exc:
             raise Failure(f"interrupted ({signal.Signals(exc.signum).name}): stopped every process of the swarm; "
@@ -274,13 +274,13 @@ def run_swarm(sc: Scenario, out: Path | None, swarm: str, port: int | None, plot
     return out
 
 
-def _start(procs: Swarm, sc: Scenario, out: Path, swarm: str, endpoint: str, plots: bool) -> None:
+def _start(procs: Swarm, sc: Scenario, out: Path, swarm: str, endpoint: str, plots: bool, restart_crashed: bool) -> None:
     scenario_file = out / "logs" / "scenario.input.yaml"
     scenario_file.write_text(sc.to_yaml())
     console.print(f"[bold]swarmloc run[/] {sc.name}: {len(sc.world.agents)} agents, {sc.clock.steps + 1} ticks (0..{sc.clock.steps}) of "
                   f"{sc.clock.dt:g} s, {sc.clock.mode}, seed {sc.seed}, Zenoh router {endpoint}, swarm '{swarm}'")
     net = procs.start_netsim(["-m", "netsim", str(scenario_file), "--swarm", swarm, "--listen", endpoint, "--out", str(out),
-                              *([] if plots else ["--no-plots"])])
+                              *([] if plots else ["--no-plots"]), *(["--await-rejoin"] if restart_crashed else [])])
     _wait_listening(int(endpoint.rsplit(":", 1)[1]), net)
     if net.poll() is not None:
         raise procs.netsim_failed("netsim failed to start")

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 
-from swarmloc import pin_blas
+from swarmloc import exit_on_sigterm, pin_blas
 
 pin_blas()  # before numpy loads
 
@@ -11,7 +11,6 @@ pin_blas()  # before numpy loads
 import argparse
 import json
 import logging
-import signal
 import sys
 from pathlib import Path
 
@@ -27,6 +26,9 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=None)
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--no-plots", action="store_true")
+    p.add_argument("--await-rejoin", action="store_true",
+                   help="lockstep: when an agent's process goes away (not a kill fault), wait for it to come back "
+                        "before the next tick (its launcher restarts crashed agents)")
     p.add_argument("--join-timeout", type=float, default=30.0)
     p.add_argument("--tick-timeout", type=float, default=10.0)
     p.add_argument("-v", "--verbose", action="store_true")
@@ -40,9 +42,10 @@ def main(argv=None) -> int:
     except scenarios.ScenarioError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    exit_on_sigterm()
     cfg = ServerConfig(swarm=a.swarm, listen=tuple(a.listen or ["tcp/127.0.0.1:7447"]), out=a.out,
-                       join_timeout=a.join_timeout, tick_timeout=a.tick_timeout, plots=not a.no_plots)
+                       join_timeout=a.join_timeout, tick_timeout=a.tick_timeout, plots=not a.no_plots,
+                       await_rejoin=a.await_rejoin)
     try:
         m = NetsimServer(sc, cfg).run()
     except scenarios.ScenarioError as exc:

@@ -51,6 +51,7 @@ class ServerConfig:
     join_timeout: float = 30.0  # s to wait for every agent to come alive
     tick_timeout: float = 10.0  # s of silence before a lagging agent is declared unresponsive
     plots: bool = True
+    await_rejoin: bool = False  # lockstep: an agent that went away (a crash) is restarted by the launcher
     on_tick: Callable[[int, int], None] | None = field(default=None, repr=False)
 
 
@@ -88,6 +89,7 @@ class NetsimServer:
         self.hop_latency: list[float] = []  # wall s from tx arrival at netsim to rx publish
         self.t0 = 0.0
         self.finished = False  # the last tick is over: agents leaving now are not events
+        self.awaited: set[int] = set()  # agents lockstep waits for before its next tick
 
     # ---------------------------------------------------------------- zenoh plumbing
 
@@ -205,6 +207,8 @@ class NetsimServer:
             log.warning("agent %s left the swarm at tick %d", aid, self.sim.k)
             if not self.finished:
                 self.agent_events.append({"k": self.sim.k, "t": self.sim.t, "agent": aid, "event": "left"})
+                if self.cfg.await_rejoin and aid not in self.sim.faults.killed():
+                    self.awaited.add(aid)
 
     def _on_tx(self, key: str, payload: bytes | None, stamp) -> None:
         arrived, attachment = stamp
@@ -363,18 +367,26 @@ class NetsimServer:
         k, t, frames = self.sim.tick(self.pending_faults)
         self.pending_faults = []
         after = self.sim.faults.killed()
-        for a in sorted(after - before):
+        killed, restarted = sorted(after - before), sorted(before - after)
+        for a in killed:
             self._put(self.pub_events, Event("kill", a, t))
-        restarted = sorted(before - after)
         for a in restarted:
             self._put(self.pub_events, Event("restart", a, t))
-        if restarted and self.mode == "lockstep":
-            # Lockstep does not run on without a restarting agent: the launcher starts its
-            # process on this event, and the agent takes this tick's frame when it is up.
-            if not self._pump(lambda: all(a in self.alive for a in restarted), self.cfg.join_timeout):
+        if self.mode == "lockstep" and killed:
+            # The launcher kills the process on this event; until it is gone it could still
+            # take frames, and a quick restart would find it alive.
+            if not self._pump(lambda: not any(a in self.alive for a in killed), self.cfg.join_timeout):
+                log.error("tick %d: killed agents %s are still alive after %.0f s", k,
+                          [a for a in killed if a in self.alive], self.cfg.join_timeout)
+        if self.mode == "lockstep" and (restarted or self.awaited):
+            # Lockstep does not run on without a restarting agent (a kill fault's restart, or
+            # a crash its launcher restarts): it takes this tick's frame when it is up.
+            back = sorted(set(restarted) | self.awaited)
+            self.awaited.clear()
+            if not self._pump(lambda: all(a in self.alive for a in back), self.cfg.join_timeout):
                 log.error("tick %d: restarted agents %s did not come back within %.0f s", k,
-                          [a for a in restarted if a not in self.alive], self.cfg.join_timeout)
-            for a in restarted:
+                          [a for a in back if a not in self.alive], self.cfg.join_timeout)
+            for a in back:
                 self.joined_at[a] = min(self.joined_at[a], k)
         self._put(self.pub_clock, Clock(k, t, self.mode, self.sc.clock.dt))
         truth = self.sim.truth()

@@ -1,4 +1,5 @@
-"""swarmloc: the estimation core (pure numpy/scipy; no Zenoh, sockets or threads).
+"""swarmloc: the estimation core (pure numpy/scipy; no Zenoh, sockets or threads; the two
+process helpers below are for entry points only).
 
 Layout: models (motion and measurement), kalman (the one Kalman core), estimators/ (IL,
 UKF-CCL, UKF-DCL), node (the sans-I/O node protocol), messages + wire (every wire type and
@@ -7,6 +8,9 @@ plots (the run directory).
 """
 
 import os
+import signal
+import sys
+import threading
 
 __version__ = "0.1.0"
 
@@ -18,3 +22,18 @@ def pin_blas() -> None:
     4x4 triangular solve with the default pool)."""
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
+
+
+def exit_on_sigterm(grace: float = 2.0) -> None:
+    """Entry-point plumbing for the agent and netsim processes: SIGTERM (from a launcher, a
+    parent-death signal or a service manager) exits with 143 through the normal clean-up, and
+    if closing the Zenoh session hangs (its peer may be going down too), the process ends
+    anyway after `grace` seconds."""
+
+    def handler(*_):
+        watchdog = threading.Timer(grace, os._exit, (143,))
+        watchdog.daemon = True
+        watchdog.start()
+        sys.exit(143)
+
+    signal.signal(signal.SIGTERM, handler)
