@@ -107,12 +107,14 @@ def test_control_commands_without_a_swarm_say_so(tmp_path):
 
 
 def runtime_env(tmp_path) -> dict:
-    return {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path)}
+    # Not the working directory itself: a `swarmloc` folder there would shadow the package
+    # for `python -m` (the current directory comes first on sys.path).
+    return {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path / "xdg")}
 
 
 def test_control_commands_find_a_registered_swarm_and_drop_a_stale_entry(tmp_path):
-    (tmp_path / "swarmloc").mkdir()
-    entry = tmp_path / "swarmloc" / "reg.json"
+    (tmp_path / "xdg" / "swarmloc").mkdir(parents=True)
+    entry = tmp_path / "xdg" / "swarmloc" / "reg.json"
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     entry.write_text(json.dumps({"swarm": "reg", "pid": os.getpid(), "endpoint": endpoint}))  # a live pid
     p = swarmloc("status", "--swarm", "reg", env=runtime_env(tmp_path))

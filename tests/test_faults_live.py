@@ -25,6 +25,20 @@ def scenario_file(tmp_path, duration=160.0, speed=4.0):
     return path
 
 
+def agent_position(ns: NetsimClient, aid: int) -> np.ndarray:
+    """Agent aid's true position now, from netsim's truth key."""
+    import queue
+
+    from swarmloc.messages import Truth
+
+    got: queue.SimpleQueue = queue.SimpleQueue()
+    sub = ns.session.declare_subscriber(ns.keys.truth(aid), lambda s: got.put(s.payload.to_bytes()))
+    try:
+        return ns.wire.decode(got.get(timeout=10), expect=(Truth,)).body.state[:2]
+    finally:
+        sub.undeclare()
+
+
 def test_every_fault_kind_live(cli, tmp_path):
     out = tmp_path / "run"
     run = cli.start_run(str(scenario_file(tmp_path)), out)
@@ -64,11 +78,14 @@ def test_every_fault_kind_live(cli, tmp_path):
         assert p.returncode == 0, p.stderr
         ns.wait(lambda s: not s["faults"], what="loss cleared")
 
-        # a jammer on top of agent 1's start point (unit disk: silences receivers within 60 m)
-        inject("jammer", "0", "0", "--radius", "60", "--for", "6")
-        s = ns.wait(lambda s: not link(s, 1, 2)["up"], what="jammer")
-        assert link(s, 1, 2)["reason"] == "jammed" and link(s, 2, 3)["up"]
-        ns.wait(lambda s: link(s, 1, 2)["up"], what="jammer off after --for")
+        # a jammer on top of agent 4, wherever it is now (unit disk: silences receivers within
+        # 20 m; the others never come within 45 m of it), long enough to be seen however slowly
+        # the machine polls
+        x, y = agent_position(ns, 4)
+        inject("jammer", f"{x:.1f}", f"{y:.1f}", "--radius", "20", "--for", "20")
+        s = ns.wait(lambda s: not link(s, 1, 4)["up"], what="jammer")
+        assert link(s, 1, 4)["reason"] == "jammed" and link(s, 1, 2)["up"] and link(s, 2, 3)["up"]
+        ns.wait(lambda s: link(s, 1, 4)["up"], what="jammer off after --for")
 
         # one-way cut
         inject("cut", "3", "4", "--forward", "--for", "4")

@@ -114,8 +114,9 @@ def test_the_swarm_dies_with_its_launcher(cli, tmp_path, sig):
 
 @pytest.mark.slow
 def test_control_commands_find_the_swarm_by_name(cli, tmp_path, monkeypatch):
-    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
-    entry = tmp_path / "swarmloc" / f"{cli.swarm}.json"
+    # Not the runs' working directory: a `swarmloc` folder there would shadow the package.
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path / "xdg"))
+    entry = tmp_path / "xdg" / "swarmloc" / f"{cli.swarm}.json"
     out = tmp_path / "run"
     run = cli.start_run(str(scenario_file(tmp_path, 1000.0)), out)
     cli.wait_tick(10, run)
