@@ -73,9 +73,7 @@ class AgentDaemon:
         put = self.inbox.put
 
         def frame(kind):
-            # An oversized frame is never copied out of Zenoh's buffer, let alone queued.
-            return lambda s: put((kind, s.payload.to_bytes() if len(s.payload) <= wire.MAX_FRAME_BYTES else None,
-                                  s.attachment))
+            return lambda s: put((kind, wire.bounded(s.payload), s.attachment))
 
         self._subs = [
             self.session.declare_subscriber(self.keys.sensors(aid), frame("sensors")),

@@ -102,9 +102,7 @@ class NetsimServer:
         put, k = self.q.put, self.keys
 
         def frame(kind, stamp=None):
-            # An oversized frame is never copied out of Zenoh's buffer, let alone queued.
-            return lambda s: put((kind, str(s.key_expr), s.payload.to_bytes() if len(s.payload) <= wire.MAX_FRAME_BYTES
-                                  else None, stamp and (time.perf_counter(), s.attachment)))
+            return lambda s: put((kind, str(s.key_expr), wire.bounded(s.payload), stamp and (time.perf_counter(), s.attachment)))
 
         block = wire.publisher_options(zenoh)
         self._subs = [
@@ -155,26 +153,30 @@ class NetsimServer:
             return self._refuse(kind, key, "src-mismatch", f"src {env.src}")
         return aid, env
 
+    def _newer(self, kind: str, key: str, payload: bytes | None):
+        """(agent id, body) of a `done` or `estimate` newer than the last accepted from that
+        agent, or None, refused and counted. An agent publishes several estimates of one tick as
+        its chains commit: an older one arriving again must not replace the newest."""
+        got = self._from_agent(kind, key, payload, Done if kind == "done" else EstimateMsg)
+        if got is None:
+            return None
+        aid, env = got
+        if env.seq <= self.last_seq[kind][aid]:
+            return self._refuse(kind, key, "stale", f"seq {env.seq}")
+        self.last_seq[kind][aid] = env.seq
+        return aid, env.body
+
     def _handle(self, item) -> None:
         kind, key, payload, stamp = item
         if kind == "tx":
             self._on_tx(key, payload, stamp)
-        elif kind == "done" and (got := self._from_agent(kind, key, payload, Done)):
-            aid, env = got
-            if env.seq <= self.last_seq["done"][aid]:
-                return self._refuse(kind, key, "stale", f"seq {env.seq}")
-            self.last_seq["done"][aid] = env.seq
-            self.done[aid] = env.body
-            self.unresponsive.discard(aid)
-        elif kind == "estimate" and (got := self._from_agent(kind, key, payload, EstimateMsg)):
-            aid, env = got
-            # An agent publishes several estimates of one tick as its chains commit; an older
-            # one arriving again must not replace the newest.
-            if env.seq <= self.last_seq["estimate"][aid]:
-                return self._refuse(kind, key, "stale", f"seq {env.seq}")
-            self.last_seq["estimate"][aid] = env.seq
-            e = env.body
-            self.record.add_estimate(e.algorithm, aid, Estimate(e.k, e.mean, e.cov))
+        elif kind in ("done", "estimate") and (got := self._newer(kind, key, payload)):
+            aid, body = got
+            if kind == "done":
+                self.done[aid] = body
+                self.unresponsive.discard(aid)
+            else:
+                self.record.add_estimate(body.algorithm, aid, Estimate(body.k, body.mean, body.cov))
         elif kind == "alive":
             try:
                 aid = wire.Keys.agent_of(key)

@@ -371,6 +371,12 @@ def zenoh_config(mode: str, listen: list[str] = (), connect: list[str] = ()) -> 
     return json.dumps(cfg)
 
 
+def bounded(payload) -> bytes | None:
+    """A subscriber's payload (Zenoh ZBytes) as bytes, or None when it exceeds the frame limit:
+    an oversized frame is never copied out of Zenoh's buffer, let alone queued."""
+    return payload.to_bytes() if len(payload) <= MAX_FRAME_BYTES else None
+
+
 def publisher_options(zenoh) -> dict:
     """Options of every swarmloc publisher, given the zenoh module (this module imports none).
     Reliable and blocking: with Zenoh's default (drop) a burst of small frames loses a quarter

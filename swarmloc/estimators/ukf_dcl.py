@@ -58,8 +58,8 @@ NEIGHBOUR_TICKS = 3
 VERSION_RETRIES = 2  # chain reruns when m and n are at different versions
 LOG_COMMITS = 2048  # applied commits kept to replay to nodes that missed them
 LOG_BATCH = 16  # commits per dcl.log frame
-GIVE_UP_TICKS = 40
-HOLD_TICKS = 10  # real time: longest wait for the commit of a chain we reported to  # a commit whose history never arrives makes the node an orphan after this
+GIVE_UP_TICKS = 40  # a commit whose history never arrives makes the node an orphan after this
+HOLD_TICKS = 10  # real time: longest wait for the commit of a chain we reported to
 
 
 class UkfDclNode(Node):
@@ -680,8 +680,11 @@ class UkfDclNode(Node):
         """Once per tick, after the time update: become lost when the position is too uncertain,
         and while lost, log the move so ranges of earlier ticks can be tied to the position now."""
         p = self.model.position_dim
-        if not self.lost and self.rejoin_std is not None:
-            if np.linalg.eigvalsh(self.row[self.id][:p, :p]).max() > self.rejoin_std**2:
+        block = self.row[self.id][:p, :p]
+        # The trace bounds the largest eigenvalue from above: the eigen-solve, every tick on
+        # every node, only when the trace says the node might be lost.
+        if not self.lost and self.rejoin_std is not None and np.trace(block) > self.rejoin_std**2:
+            if np.linalg.eigvalsh(block).max() > self.rejoin_std**2:
                 self.lost = True
                 self.stats["lost"] += 1
                 self.finder.clear()
