@@ -118,7 +118,10 @@ class AgentDaemon:
     def run(self) -> None:
         """Handle inputs until stopped (signal, stop clock, or stop())."""
         while not self._stop.is_set():
-            kind, data, attachment = self.inbox.get()
+            try:  # timed, so a signal handler gets its turn in this thread
+                kind, data, attachment = self.inbox.get(timeout=0.5)
+            except queue.Empty:
+                continue
             if kind == "stop":
                 break
             if kind == "stats":

@@ -7,6 +7,7 @@ the codec), scenario (YAML schema), runner (in-process deterministic runner), re
 plots (the run directory).
 """
 
+import _thread
 import os
 import signal
 import sys
@@ -27,13 +28,25 @@ def pin_blas() -> None:
 def exit_on_sigterm(grace: float = 2.0) -> None:
     """Entry-point plumbing for the agent and netsim processes: SIGTERM (from a launcher, a
     parent-death signal or a service manager) exits with 143 through the normal clean-up, and
-    if closing the Zenoh session hangs (its peer may be going down too), the process ends
-    anyway after `grace` seconds."""
+    if that hangs (closing a Zenoh session whose peer is going down too) the process ends anyway
+    after `grace` seconds. Call it before any thread starts.
+
+    A Python signal handler alone is not enough: the kernel hands a process-directed signal to
+    any thread that does not block it, usually one of Zenoh's, and the main thread, asleep in an
+    untimed wait, never runs the handler. So SIGTERM is blocked here (threads started later
+    inherit the mask) and one thread takes it with sigwait, starts the watchdog first and then
+    raises the exit in the main thread."""
 
     def handler(*_):
+        sys.exit(143)
+
+    def waiter():
+        signal.sigwait({signal.SIGTERM})
         watchdog = threading.Timer(grace, os._exit, (143,))
         watchdog.daemon = True
         watchdog.start()
-        sys.exit(143)
+        _thread.interrupt_main(signal.SIGTERM)
 
     signal.signal(signal.SIGTERM, handler)
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
+    threading.Thread(target=waiter, name="sigterm", daemon=True).start()
