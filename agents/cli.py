@@ -103,12 +103,29 @@ def _ids(text: str, what: str) -> list[int]:
         raise typer.BadParameter(f"expected comma-separated agent ids, got {text!r}", param_hint=[what]) from None
 
 
-def load_scenario(name: str, seed: int | None = None) -> scenarios.Scenario:
+def load_scenario(name: str, seed: int | None = None, estimator: str | None = None) -> scenarios.Scenario:
+    """A scenario with the command line's overrides (--seed, --estimator)."""
     try:
         sc = scenarios.load(name)
-        return sc if seed is None else sc.with_overrides(seed=seed)
+        changes = {"seed": seed} if seed is not None else {}
+        if estimator is not None and estimator != sc.estimator.name:
+            # Another estimator's parameters are not this one's: start from its defaults.
+            changes["estimator"] = {"name": estimator, "params": {}}
+        return sc.with_overrides(**changes) if changes else sc
     except scenarios.ScenarioError as exc:
         raise Failure(str(exc), 2) from None
+
+
+def _estimator_name(value: str | None) -> str | None:
+    from swarmloc.estimators import REGISTRY
+
+    if value is not None and value not in REGISTRY.running():
+        raise typer.BadParameter(f"unknown estimator {value!r}; agents run one of: {', '.join(REGISTRY.running())}")
+    return value
+
+
+EstimatorOpt = typer.Option(None, "--estimator", callback=_estimator_name,
+                            help="the estimator the agents run, instead of the scenario's (`swarmloc estimators`)")
 
 
 SwarmOpt = typer.Option("default", "--swarm", callback=_swarm_name, help="swarm name: the key prefix swarmloc/<swarm>/")
@@ -147,10 +164,10 @@ RestartOpt = typer.Option(False, "--restart-crashed",
 
 
 def _run(scenario: str, out: Path | None, seed: int | None, swarm: str, port: int | None, plots: bool, force: bool,
-         restart_crashed: bool) -> None:
+         restart_crashed: bool, estimator: str | None = None) -> None:
     from agents.launcher import run_swarm
 
-    run_swarm(load_scenario(scenario, seed), out, swarm, port, plots, force, restart_crashed)
+    run_swarm(load_scenario(scenario, seed, estimator), out, swarm, port, plots, force, restart_crashed)
 
 
 @app.command()
@@ -158,11 +175,12 @@ def run(
     scenario: str = typer.Argument(..., help="built-in scenario name (see `swarmloc scenarios`) or a YAML file"),
     out: Optional[Path] = OutOpt, seed: Optional[int] = SeedOpt, swarm: str = SwarmOpt, port: Optional[int] = PortOpt,
     plots: bool = PlotsOpt, force: bool = ForceOpt, restart_crashed: bool = RestartOpt,
+    estimator: Optional[str] = EstimatorOpt,
 ):
     """Run a scenario: netsim plus one agent process per platform, over Zenoh on loopback.
 
     A crashed agent is reported and the run goes on without it; only a failing netsim fails the run."""
-    _run(scenario, out, seed, swarm, port, plots, force, restart_crashed)
+    _run(scenario, out, seed, swarm, port, plots, force, restart_crashed, estimator)
 
 
 @app.command()
@@ -182,7 +200,8 @@ def agent(
     start: Optional[str] = typer.Option(None, "--start", help="known start position, e.g. '0,0' (without --scenario)"),
     initial_std: float = typer.Option(0.1, "--initial-std", callback=_in_range(0, above=True),
                                       help="std of the start position (m), without --scenario"),
-    algorithm: str = typer.Option("ukf-dcl", "--algorithm", help="ukf-dcl or il"),
+    estimator: Optional[str] = typer.Option(None, "--estimator", callback=_estimator_name,
+                                            help="the estimator to run (default: the scenario's; without --scenario, ukf-dcl)"),
     swarm: str = SwarmOpt,
     connect: Optional[list[str]] = typer.Option(None, "--connect", callback=_endpoints,
                                                 help=f"Zenoh endpoint to connect to (repeatable; default: {DEFAULT_ENDPOINT}, none for a peer with --listen)"),
@@ -199,21 +218,26 @@ def agent(
 
     from agents.control import zenoh_message
     from agents.daemon import AgentConfig, AgentDaemon
-    from swarmloc.estimators import NODE_TYPES
-    from swarmloc.runner import make_nodes
+    from swarmloc.estimators import REGISTRY, make_nodes
 
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING,
                         format=f"%(asctime)s agent-{id} %(levelname)s %(message)s")
-    if algorithm not in NODE_TYPES:
-        raise typer.BadParameter(f"unknown algorithm {algorithm!r}; choose from {sorted(NODE_TYPES)}", param_hint=["--algorithm"])
     if scenario:
-        sc = load_scenario(scenario)
+        sc = load_scenario(scenario, estimator=estimator)
         if id not in sc.agent_ids:
             raise typer.BadParameter(f"agent {id} is not in scenario {sc.name} (agents {sc.agent_ids})", param_hint=["--id"])
-        node = make_nodes(algorithm, sc, [id])[id]
+        node = make_nodes(sc.estimator.name, sc, [id])[id]
     elif start:
-        x0 = np.array(_numbers(start, "--start", 2))  # the planar-speed-heading model's position
-        node = NODE_TYPES[algorithm](id, x0, np.eye(2) * initial_std**2)
+        estimator = estimator or "ukf-dcl"
+        if "planar-speed-heading" not in REGISTRY[estimator].models:
+            raise typer.BadParameter(f"{estimator} needs --scenario (--start is a planar robot's position)",
+                                     param_hint=["--estimator"])
+        # A one-platform scenario: the node is built exactly as from a scenario file.
+        sc = scenarios.parse({"version": scenarios.SCENARIO_VERSION, "name": f"agent-{id}",
+                              "world": {"agents": [{"id": id, "start": _numbers(start, "--start", 2)}]},
+                              "estimation": {"initial_std": initial_std, "initial_error": False},
+                              "estimator": {"name": estimator}})
+        node = make_nodes(estimator, sc, [id])[id]
     else:
         raise Failure("give --scenario or --start", 2)
     cfg = AgentConfig(swarm=swarm, connect=tuple(connect or ([] if mode == "peer" and listen else [DEFAULT_ENDPOINT])), listen=tuple(listen or ()), mode=mode,

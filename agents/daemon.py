@@ -27,7 +27,7 @@ import zenoh
 
 from swarmloc import wire
 from swarmloc.messages import Clock, Done, EstimateMsg, LinkNack, Reply, Sensors
-from swarmloc.node import Node, Outbox
+from swarmloc.node import Node, Outbox, Timers, estimate_of
 
 log = logging.getLogger("swarmloc.agent")
 
@@ -62,6 +62,11 @@ class AgentDaemon:
         self._last_published = None
         self._last_checkpoint = -1e9
         self._stop = threading.Event()
+        # Node timers: lockstep arms and fires them in modelled time (the tick's t, before its
+        # sensor frame), real time in wall seconds scaled to modelled ones by the clock's speed.
+        self.timers = Timers()
+        self.model_t = 0.0  # modelled time of the last sensor frame
+        self.speed, self.clock_t, self.clock_wall = 1.0, 0.0, time.monotonic()  # real time: the last clock frame
 
     # ---------------------------------------------------------------- zenoh plumbing
 
@@ -118,10 +123,16 @@ class AgentDaemon:
     def run(self) -> None:
         """Handle inputs until stopped (signal, stop clock, or stop())."""
         while not self._stop.is_set():
+            wait = 0.5
+            if not self.node.synchronous and (due := self.timers.next_due()) is not None:
+                wait = min(wait, max(0.0, due - self._now()))
             try:  # timed, so a signal handler gets its turn in this thread
-                kind, data, attachment = self.inbox.get(timeout=0.5)
+                kind, data, attachment = self.inbox.get(timeout=wait)
             except queue.Empty:
-                continue
+                due = self.timers.next_due()
+                if self.node.synchronous or due is None or due > self._now():
+                    continue
+                kind, data, attachment = "timers", None, None
             if kind == "stop":
                 break
             if kind == "stats":
@@ -137,7 +148,7 @@ class AgentDaemon:
             if sends is None:
                 continue  # clock: nothing to acknowledge
             self.handled += 1
-            for s in sends:
+            for s in self.timers.split(sends, self._now()):
                 self._send(s)
             self._publish_estimate()
             # Always acknowledge, even a rejected input: lockstep must not wait on us for nothing.
@@ -159,8 +170,19 @@ class AgentDaemon:
             return self._reject("src-mismatch", f"{kind} from {env.src}")
         return env
 
+    def _now(self) -> float:
+        """The node's clock for timers: modelled time in lockstep, scaled wall time otherwise."""
+        if self.node.synchronous:
+            return self.model_t
+        return self.clock_t + (time.monotonic() - self.clock_wall) * self.speed
+
+    def _fire_timers(self, now: float) -> list:
+        return [x for tag in self.timers.pop_due(now) for x in self.node.on_timer(tag, now)]
+
     def _handle(self, kind: str, data: bytes | None, attachment) -> list | None:
         """Radio frames to send in response; None for inputs that need no acknowledgement."""
+        if kind == "timers":
+            return self._fire_timers(self._now())
         if data is None:
             self._reject("oversize", kind)
             return None if kind == "clock" else []
@@ -176,12 +198,17 @@ class AgentDaemon:
             else:
                 self.clock_k = env.body.k
                 self.node.synchronous = env.body.mode == "lockstep"
+                self.speed, self.clock_t, self.clock_wall = env.body.speed, env.body.t, time.monotonic()
             return None
         if kind == "sensors":
             env = self._envelope(kind, data, (Sensors,))
             if env is None:
                 return []
-            sends = self.node.step(env.body)
+            fired = []
+            if self.node.synchronous:
+                self.model_t = env.body.t
+                fired = self._fire_timers(self.model_t)
+            sends = fired + self.node.step(env.body)
             self._checkpoint()
             return sends
         if not self.cfg.direct:
@@ -268,9 +295,12 @@ class AgentDaemon:
         self.sent += 1
 
     def _publish_estimate(self) -> None:
-        e = self.node.estimate()
+        if self.node.model.state_dim == 0:
+            return  # a ground station localizes nothing
+        e = estimate_of(self.node)
         sig = (e.k, e.mean.tobytes(), e.cov.tobytes())
         if sig == self._last_published or e.k < 0:
             return
         self._last_published = sig
-        self._pub_est.put(wire.encode(EstimateMsg(e.k, self.node.algorithm, e.mean, e.cov), self.node.id, self.handled))
+        nis = np.array(e.nis, float).reshape(-1, 2) if e.nis else None
+        self._pub_est.put(wire.encode(EstimateMsg(e.k, self.node.algorithm, e.mean, e.cov, nis), self.node.id, self.handled))

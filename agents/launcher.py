@@ -30,6 +30,7 @@ from rich.table import Table
 
 from agents.control import DEFAULT_PORT, Failure, Registration
 from swarmloc import wire
+from swarmloc.estimators import REGISTRY
 from swarmloc.scenario import Scenario
 
 console = Console()
@@ -359,9 +360,28 @@ def _record_crashes(out: Path, crashes: list[Crash]) -> None:
     os.replace(tmp, path)
 
 
+def consistency_table(m: dict, algs: list[str]) -> Table:
+    """Average NEES (and NIS) of each estimator over agents and ticks, with the two-sided 95%
+    chi-square bounds a consistent filter's average falls in."""
+    t = Table(title="Consistency: average NEES and NIS (95% bounds)")
+    for col in ("estimator", "NEES", "bounds", "", "NIS", "bounds", ""):
+        t.add_column(col, justify="left" if col == "estimator" else "right")
+
+    def cells(c):
+        if not c:
+            return ["-", "", ""]
+        lo, hi = c["bounds"]
+        return [f"{c['mean']:.2f}", f"[{lo:.2f}, {hi:.2f}]", "[green]inside[/]" if c["inside"] else "[red]outside[/]"]
+
+    for a in algs:
+        e = m["estimators"][a]
+        t.add_row(a, *cells(e.get("nees")), *cells(e.get("nis")))
+    return t
+
+
 def print_summary(out: Path, crashes: list[Crash]) -> None:
     m = json.loads((out / "metrics.json").read_text())
-    algs = [a for a in ("il", "ukf-dcl", "ukf-ccl") if a in m["estimators"]]
+    algs = REGISTRY.order(m["estimators"])
     t = Table(title=f"Position error (m), {m['scenario']} seed {m['seed']}")
     t.add_column("agent")
     for a in algs:
@@ -369,7 +389,7 @@ def print_summary(out: Path, crashes: list[Crash]) -> None:
         t.add_column(f"{a} final", justify="right")
 
     def fmt(v):
-        return "-" if v is None else f"{v:.2f}"
+        return "-" if v is None else f"{v:.3f}" if abs(v) < 1 else f"{v:.2f}"
 
     for aid in map(str, m["agents"]):
         row = [f"A{aid}"]
@@ -379,6 +399,7 @@ def print_summary(out: Path, crashes: list[Crash]) -> None:
         t.add_row(*row)
     t.add_row("all", *sum(([fmt(m["estimators"][a]["mean_error_m"]), ""] for a in algs), []), style="bold")
     console.print(t)
+    console.print(consistency_table(m, algs))
     r = m.get("radio", {})
     console.print(f"{m['ticks']} ticks in {m['wall_time_s']:.1f} s ({m['ticks_per_s']:.0f} ticks/s); radio: "
                   f"{r.get('delivered', 0)} frames delivered, dropped {r.get('dropped', {}) or 'none'}")

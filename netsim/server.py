@@ -31,6 +31,7 @@ from swarmloc import wire
 from swarmloc.faults import FaultError, inverse_of, nodes_named, parse_fault
 from swarmloc.messages import Clock, Control, Done, EstimateMsg, Event, LinkMsg, LinkNack, Links, Reply, Truth
 from swarmloc.node import Estimate, RadioRx, RadioTx
+from swarmloc.estimators import REGISTRY
 from swarmloc.results import RunRecord, compute_references, metrics, write_run
 from swarmloc.scenario import Scenario
 
@@ -82,7 +83,7 @@ class NetsimServer:
         self.round: list[RadioTx] = []
         self._new_event = False
         self.pending_faults: list = []
-        self.record = RunRecord(self.ids, len(scenario.agent(self.ids[0]).start))
+        self.record = RunRecord.for_scenario(scenario)
         self.sim.down.update(self.ids)  # nobody is up until their liveliness token appears
         self.seq = 0
         self.sent_at: dict[tuple[int, int], float] = {}  # (src, seq) -> sender's send time
@@ -176,7 +177,8 @@ class NetsimServer:
                 self.done[aid] = body
                 self.unresponsive.discard(aid)
             else:
-                self.record.add_estimate(body.algorithm, aid, Estimate(body.k, body.mean, body.cov))
+                nis = () if body.nis is None else tuple((float(v), int(d)) for v, d in body.nis)
+                self.record.add_estimate(body.algorithm, aid, Estimate(body.k, body.mean, body.cov, nis))
         elif kind == "alive":
             try:
                 aid = wire.Keys.agent_of(key)
@@ -390,7 +392,7 @@ class NetsimServer:
                           [a for a in back if a not in self.alive], self.cfg.join_timeout)
             for a in back:
                 self.joined_at[a] = min(self.joined_at[a], k)
-        self._put(self.pub_clock, Clock(k, t, self.mode, self.sc.clock.dt))
+        self._put(self.pub_clock, Clock(k, t, self.mode, self.sc.clock.dt, self.sc.clock.speed))
         truth = self.sim.truth()
         for a in self.ids:
             self._put(self.pub_truth[a], Truth(k, t, truth[a]))
@@ -459,7 +461,7 @@ class NetsimServer:
     def _finish(self, wall: float, agent_stats: dict) -> dict:
         # Estimates are published before each `done`, so at quiet they have all arrived.
         self._pump(lambda: False, 0.05)
-        compute_references(self.sc, self.record, [a for a in ("il", "ukf-ccl") if a in self.sc.estimators])
+        compute_references(self.sc, self.record)
         lat = np.array(self.hop_latency) * 1e6
         extra = {
             "transport": f"zenoh-{self.mode}",
@@ -475,7 +477,7 @@ class NetsimServer:
             "agent_events": self.agent_events,
             "rejected": {kind: dict(c) for kind, c in self.rejected.items()},
         }
-        algorithms = [a for a in ("il", "ukf-dcl", "ukf-ccl") if a in self.sc.estimators or a in self.record.est]
+        algorithms = REGISTRY.order({self.sc.estimator.name, *self.sc.reference_names, *self.record.est})
         if self.cfg.out is None:
             return {**metrics(self.record, algorithms), **extra}
         # The run directory states the radio with every default filled in.

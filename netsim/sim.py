@@ -29,6 +29,12 @@ from swarmloc.node import RadioTx as Tx
 from swarmloc.scenario import Scenario, ScenarioError
 
 log = logging.getLogger(__name__)
+
+
+def _pos3(p) -> np.ndarray:
+    """A 2D (planar) or 3D position as 3D: planar robots and jammers sit at height 0."""
+    p = np.asarray(p, float)
+    return np.pad(p, (0, 3 - p.size))
 CHANNEL = TypeAdapter(ChannelConfig)
 
 
@@ -91,7 +97,8 @@ class Simulation:
         return self.k, self.t, frames
 
     def truth(self) -> dict[int, np.ndarray]:
-        return self.world.positions()
+        """Every agent's true state in its model's layout (docs/run-format.md)."""
+        return self.world.states()
 
     def apply(self, f: _Fault, source: str) -> None:
         try:
@@ -176,7 +183,7 @@ class Simulation:
         if not isinstance(self.channel, UnitDisk):
             return None
         for f, pos in self.faults.jammers(self.t):
-            if np.linalg.norm(self.world.pos[receiver] - pos) <= f.radius_m:
+            if np.linalg.norm(_pos3(self.world.pos[receiver]) - _pos3(pos)) <= f.radius_m:
                 return "jammed"
         return None
 

@@ -23,19 +23,33 @@ def streams(seed: int) -> dict[str, np.random.Generator]:
 
 
 class World:
+    """Planar robots are simulated here; UAS by netsim.uas_world.UasFleet; ground stations
+    stand still. One sensor frame per agent and tick whatever its kind."""
+
     def __init__(self, scenario: Scenario, seed: int | None = None):
         self.sc = scenario
-        self.rng = streams(scenario.seed if seed is None else seed)
+        seed = scenario.seed if seed is None else seed
+        self.rng = streams(seed)
         self.dt = scenario.clock.dt
         self.ids = scenario.agent_ids
         self.k = -1
         self.t = 0.0
+        self.planar = [a for a in scenario.world.agents if a.model == "planar-speed-heading"]
+        self.planar_ids = sorted(a.id for a in self.planar)
+        uas = sorted(a.id for a in scenario.world.agents if a.model == "uas-ins")
+        self.fleet = None
+        if uas:
+            from netsim.uas_world import UasFleet
+
+            self.fleet = UasFleet(scenario, uas, seed)
         self.pos = {a.id: np.array(a.start, float) for a in scenario.world.agents}
-        self.heading = {a.id: float(a.heading) for a in scenario.world.agents}
-        self.turn = {a.id: self._initial_turn(a.motion) for a in scenario.world.agents}
+        if self.fleet is not None:
+            self.pos.update(self.fleet.positions())
+        self.heading = {a.id: float(a.heading) for a in self.planar}
+        self.turn = {a.id: self._initial_turn(a.motion) for a in self.planar}
         # The odometry's own heading: the integral of the measured turn rate from the known start.
         self.heading_est = dict(self.heading)
-        self.heading_var = {a: 0.0 for a in self.ids}
+        self.heading_var = {a: 0.0 for a in self.planar_ids}
 
     @staticmethod
     def _initial_turn(motion) -> float:
@@ -48,17 +62,35 @@ class World:
     def positions(self) -> dict[int, np.ndarray]:
         return {a: p.copy() for a, p in self.pos.items()}
 
+    def states(self) -> dict[int, np.ndarray]:
+        """Each agent's true state in its model's layout (a ground station's is empty)."""
+        out = {a: np.zeros(0) for a in self.ids}
+        out.update({a: self.pos[a].copy() for a in self.planar_ids})
+        if self.fleet is not None:
+            out.update(self.fleet.states())
+        return out
+
     def step(self, gnss_ok=lambda a: True) -> dict[int, Sensors]:
         """Advance to the next tick; return every agent's sensor frame for it.
 
         gnss_ok(a) False means agent a's GNSS is out (a fault): its frame carries no fix."""
         self.k += 1
-        if self.k == 0:
-            return {a: Sensors(0, 0.0, OdometryMsg(0.0, 0.0, self.heading_est[a], 0.0, 0.0), []) for a in self.ids}
         self.t = self.k * self.dt
+        out = {a: Sensors(self.k, self.t, None, []) for a in self.ids}
+        if self.fleet is not None:
+            for a, fields in self.fleet.step(self.k, gnss_ok).items():
+                out[a] = Sensors(self.k, self.t, None, **fields)
+            self.pos.update(self.fleet.positions())
+        if self.planar:
+            out.update(self._step_planar(gnss_ok))
+        return out
+
+    def _step_planar(self, gnss_ok) -> dict[int, Sensors]:
+        if self.k == 0:
+            return {a: Sensors(0, 0.0, OdometryMsg(0.0, 0.0, self.heading_est[a], 0.0, 0.0), []) for a in self.planar_ids}
         odo_cfg = self.sc.sensors.odometry
         odometry = {}
-        for spec in self.sc.world.agents:
+        for spec in self.planar:
             a, m = spec.id, spec.motion
             speed = m.speed
             # Odometry over this step uses the heading the platform believes it had at its start.
@@ -75,20 +107,21 @@ class World:
                 self.turn[a] = decay * self.turn[a] + m.turn_rate_std * math.sqrt(1 - decay**2) * self.rng["motion"].normal()
         ranges = self._ranges()
         gnss = self._gnss(gnss_ok)
-        return {a: Sensors(self.k, self.t, odometry[a], ranges.get(a, []), gnss.get(a)) for a in self.ids}
+        return {a: Sensors(self.k, self.t, odometry[a], ranges.get(a, []), gnss.get(a)) for a in self.planar_ids}
 
     def _gnss(self, gnss_ok) -> dict[int, GnssMsg]:
         cfg = self.sc.sensors.gnss
         if not cfg.enabled:
             return {}
-        noise = {a: self.rng["gnss"].normal(0.0, cfg.noise, size=2) for a in self.ids}  # drawn even in outage
-        return {a: GnssMsg(self.pos[a] + noise[a], cfg.noise) for a in self.ids if gnss_ok(a)}
+        noise = {a: self.rng["gnss"].normal(0.0, cfg.noise, size=2) for a in self.planar_ids}  # drawn even in outage
+        have = self.planar_ids if cfg.agents is None else [a for a in self.planar_ids if a in cfg.agents]
+        return {a: GnssMsg(self.pos[a] + noise[a], cfg.noise) for a in have if gnss_ok(a)}
 
     def _ranges(self) -> dict[int, list[RangeMsg]]:
         """Up to max_per_step measurements among distinct ordered pairs within sensing range."""
         cfg = self.sc.sensors.range
         rng = self.rng["range"]
-        pairs = [(m, n) for m in self.ids for n in self.ids
+        pairs = [(m, n) for m in self.planar_ids for n in self.planar_ids
                  if m != n and np.linalg.norm(self.pos[m] - self.pos[n]) <= cfg.max_range]
         out: dict[int, list[RangeMsg]] = {}
         for _ in range(cfg.max_per_step):

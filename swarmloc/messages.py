@@ -6,6 +6,7 @@ decoder's validation stay complete in one place.
 
 from __future__ import annotations
 
+from dataclasses import field
 from typing import Annotated
 
 import numpy as np
@@ -31,6 +32,7 @@ class Clock:
     t: Annotated[float, Float()]
     mode: Annotated[str, Str(16)]
     dt: Annotated[float, Float(lo=0.0)]
+    speed: Annotated[float, Float(lo=0.0)] = 1.0  # real time: modelled seconds per wall second
 
 
 @message("odometry")
@@ -51,22 +53,69 @@ class RangeMsg:
 
 @message("gnss")
 class GnssMsg:
-    """A GNSS position fix: position (m, swarm frame) with per-axis std."""
+    """A GNSS position fix: position (m, swarm frame), std of each horizontal coordinate and,
+    for a 3D fix, of the vertical one (None: the horizontal std)."""
 
     position: Vec
     std: Annotated[float, Float(lo=0.0)]
+    std_vertical: Annotated[float | None, Optional(Float(lo=0.0))] = None
+
+
+@message("imu")
+class ImuMsg:
+    """The IMU intervals of one tick, oldest first: each row is the mean body angular rate
+    (rad/s) and mean specific force (m/s^2) over `dt` seconds, body axes FLU:
+    [gx, gy, gz, ax, ay, az]."""
+
+    dt: Annotated[float, Float(lo=0.0)]
+    samples: Mat
+
+
+@message("pseudoranges")
+class PseudorangesMsg:
+    """GNSS pseudoranges of one epoch: satellite positions (rows, m, swarm ENU frame) and the
+    measured pseudorange to each (m, receiver clock bias included), all with std `std`."""
+
+    sats: Mat
+    rho: Vec
+    std: Annotated[float, Float(lo=0.0)]
+
+
+@message("relpos")
+class RelPosMsg:
+    """Relative position of platform `target` seen from the measurer, p_target - p_measurer
+    (m, swarm ENU frame), each component with std `std`."""
+
+    target: Id
+    z: Vec
+    std: Annotated[float, Float(lo=0.0)]
+
+
+@message("align")
+class AlignMsg:
+    """A UAS's pre-flight alignment, in its tick-0 frame only: its initial state estimate in
+    the uas-ins model's layout and that estimate's error covariance (docs/uas.md)."""
+
+    x: Vec
+    P: SqMat
 
 
 @message("sensors")
 class Sensors:
     """One agent's sensor frame for tick k; relative measurements in the order they were taken.
-    gnss is None when the platform has no fix (no receiver, or an outage)."""
+    A platform carries the sensors its model reads: odometry for a planar robot, imu for a UAS
+    (None otherwise); gnss (a position fix) and pseudoranges are None without a receiver, in an
+    outage or between GNSS epochs."""
 
     k: Tick
     t: Annotated[float, Float()]
-    odometry: Annotated[OdometryMsg, Nested(OdometryMsg)]
+    odometry: Annotated[OdometryMsg | None, Optional(Nested(OdometryMsg))]
     ranges: Annotated[list, ListOf(Nested(RangeMsg), max_len=64)]
     gnss: Annotated[GnssMsg | None, Optional(Nested(GnssMsg))] = None
+    imu: Annotated[ImuMsg | None, Optional(Nested(ImuMsg))] = None
+    pseudoranges: Annotated[PseudorangesMsg | None, Optional(Nested(PseudorangesMsg))] = None
+    relpos: Annotated[list, ListOf(Nested(RelPosMsg), max_len=64)] = field(default_factory=list)
+    align: Annotated[AlignMsg | None, Optional(Nested(AlignMsg))] = None
 
 
 @message("truth")
@@ -85,6 +134,8 @@ class EstimateMsg:
     algorithm: Annotated[str, Str(32)]
     mean: Vec
     cov: SqMat
+    # (NIS, degrees of freedom) of each innovation the estimator formed in tick k (rows).
+    nis: Annotated[np.ndarray | None, Optional(Array(2))] = None
 
 
 @message("done")
@@ -217,6 +268,32 @@ class DclLog:
 
     k: Tick
     commits: Annotated[list, ListOf(Nested(DclCommit), max_len=64)]
+
+
+# EKF fusion centre (Goel et al. section 3): UAS send their inputs, the centre runs the joint EKF.
+
+
+@message("fc.data")
+class CentreData:
+    """UAS -> fusion centre, unicast, every tick: the UAS's sensor frame of tick k and, when
+    the UAS has no estimate from the centre for the previous tick (the centre is new, restarted
+    or was out of reach), its own estimate of tick k-1 (x, P), from which the centre takes the
+    UAS into its joint state."""
+
+    k: Tick
+    sensors: Annotated[Sensors, Nested(Sensors)]
+    x: Annotated[np.ndarray | None, Optional(Array(1))] = None
+    P: Annotated[np.ndarray | None, Optional(Array(2, square=True))] = None
+
+
+@message("fc.estimate")
+class CentreEstimate:
+    """Fusion centre -> UAS, unicast: the UAS's marginal of the joint estimate after tick k
+    (x in the uas-ins layout, P its error covariance)."""
+
+    k: Tick
+    x: Vec
+    P: SqMat
 
 
 @message("radio.nack")

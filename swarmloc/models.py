@@ -43,6 +43,17 @@ class MotionModel:
     def position(self, x: np.ndarray) -> np.ndarray:
         return x[..., : self.position_dim]
 
+    def error(self, x_true: np.ndarray, x_est: np.ndarray) -> np.ndarray:
+        """The estimation error in the coordinates of the estimate's covariance (for NEES)."""
+        return np.asarray(x_true, float) - np.asarray(x_est, float)
+
+    @property
+    def layout(self):
+        """Where measurement models find position (and attitude, clock) in the state."""
+        from swarmloc.measurements import StateLayout
+
+        return StateLayout.planar()
+
 
 class PlanarSpeedHeading(MotionModel):
     """UKF-DCL eq. (1): planar position driven by measured speed and heading.
@@ -64,7 +75,66 @@ class PlanarSpeedHeading(MotionModel):
         return x_new, np.eye(2), Q
 
 
-MOTION_MODELS: dict[str, MotionModel] = {m.name: m for m in (PlanarSpeedHeading(),)}
+class UasIns(MotionModel):
+    """A UAS with a strapdown INS (swarmloc/ins.py): the 16-state error model of the EKF-CI paper.
+
+    The state vector an estimate reports (and truth records) is
+    [position (3, ENU m), velocity (3, m/s), attitude (3, the rotation vector of the body FLU to
+    ENU rotation), gyro bias (3, rad/s), accelerometer bias (3, m/s^2), clock bias (1, m)], and
+    its covariance is that of the error state dx of swarmloc/ins.py, in the same order: the
+    attitude error is a small ENU-frame rotation, not a difference of rotation vectors. `error`
+    computes that dx, which is what NEES needs. The filter is driven by IMU samples, not by
+    `predict`, and F is not the identity.
+    """
+
+    name = "uas-ins"
+    state_dim = 16
+    position_dim = 3
+    identity_transition = False
+
+    @staticmethod
+    def pack(state) -> np.ndarray:
+        from swarmloc import ins
+
+        return np.concatenate([state.position, state.velocity, ins.rotvec_from_quat(state.quaternion),
+                               state.gyro_bias, state.accel_bias, [state.clock_bias]])
+
+    @staticmethod
+    def unpack(x: np.ndarray, clock_drift: float = 0.0):
+        from swarmloc import ins
+
+        x = np.asarray(x, float)
+        return ins.InsState(x[0:3], x[3:6], ins.quat_from_rotvec(x[6:9]), x[9:12], x[12:15], float(x[15]), clock_drift)
+
+    def error(self, x_true: np.ndarray, x_est: np.ndarray) -> np.ndarray:
+        from swarmloc import ins
+
+        return ins.state_error(self.unpack(x_true), self.unpack(x_est))
+
+    def predict(self, x, u):
+        raise TypeError("uas-ins is propagated by IMU mechanization (swarmloc/ins.py), not by odometry")
+
+    @property
+    def layout(self):
+        from swarmloc.measurements import StateLayout
+
+        return StateLayout.uas16("rotation-vector")
+
+
+class GroundStation(MotionModel):
+    """A fixed radio participant that is not localized (a fusion centre's ground station):
+    no state, no sensors; its position (scenario `start`) only matters to the radio."""
+
+    name = "ground-station"
+    state_dim = 0
+    position_dim = 3
+    identity_transition = True
+
+    def predict(self, x, u):
+        return x, np.zeros((0, 0)), np.zeros((0, 0))
+
+
+MOTION_MODELS: dict[str, MotionModel] = {m.name: m for m in (PlanarSpeedHeading(), UasIns(), GroundStation())}
 
 
 class RelativeMeasurement:

@@ -30,10 +30,30 @@ class Send:
 
 
 @dataclass(frozen=True)
+class Timer:
+    """Returned among a node's sends: call `on_timer(tag, t)` once `delay` seconds have passed.
+
+    Lockstep: modelled time, deterministic. The timer fires at the start of the first tick whose
+    time t is at least (time of the tick it was set in) + delay, before that tick's sensor frame.
+    Real time: wall time, the clock's speed applied. Setting a tag again replaces its timer."""
+
+    delay: float
+    tag: str
+
+
+@dataclass(frozen=True)
 class Estimate:
     k: int
     mean: np.ndarray
     cov: np.ndarray
+    nis: tuple = ()  # (NIS, dof) of each innovation the estimator formed in tick k
+
+
+def estimate_of(node) -> Estimate:
+    """A node's estimate with the NIS values of its current tick (`node.nis`, where it has them)."""
+    e = node.estimate()
+    nis = tuple(getattr(node, "nis", ()) or ())
+    return Estimate(e.k, e.mean, e.cov, nis) if nis else e
 
 
 def keyed_ranges(measurer: int, sensors: Sensors):
@@ -70,6 +90,15 @@ class Node:
         if self.x.shape != (self.model.state_dim,) or self.P.shape != (self.model.state_dim,) * 2:
             raise ValueError(f"x0/P0 do not match {self.model.name} (state_dim {self.model.state_dim})")
         self.drops: Counter[str] = Counter()
+
+    @classmethod
+    def from_scenario(cls, scenario, aid: int, settings=None) -> "Node":
+        """The node of agent `aid` as the scenario configures it (the estimator registry's factory)."""
+        return cls(aid, *scenario.prior(aid), scenario.agent(aid).model)
+
+    def on_timer(self, tag: str, t: float) -> list:
+        """A Timer this node set has expired; t is the current time (modelled or wall, s)."""
+        return []
 
     def step(self, sensors: Sensors) -> list[Send]:
         """Handle the sensor frame of tick sensors.k (time update first, then measurements)."""
@@ -108,6 +137,33 @@ class Node:
         self.drops[reason] += 1
         log.debug("node %s drops frame: %s %s", self.id, reason, detail)
         return []
+
+
+class Timers:
+    """A driver's record of one node's timers (Timer): tag -> due time, in the driver's clock."""
+
+    def __init__(self):
+        self.due: dict[str, float] = {}
+
+    def split(self, actions, now: float) -> list[Send]:
+        """Take the Timers out of a node's returned actions (arming them at `now`); the sends remain."""
+        sends = []
+        for a in actions:
+            if isinstance(a, Timer):
+                self.due[a.tag] = now + a.delay
+            else:
+                sends.append(a)
+        return sends
+
+    def pop_due(self, now: float) -> list[str]:
+        """Tags due by `now`, earliest first (ties by tag), disarmed."""
+        tags = sorted((d, tag) for tag, d in self.due.items() if d <= now + 1e-9)
+        for _, tag in tags:
+            del self.due[tag]
+        return [tag for _, tag in tags]
+
+    def next_due(self) -> float | None:
+        return min(self.due.values(), default=None)
 
 
 @dataclass(frozen=True)

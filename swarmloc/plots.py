@@ -14,10 +14,18 @@ import numpy as np
 from swarmloc.faults import INVERSE
 
 DPI = 110
-STYLE = {"il": ("tab:red", "IL (dead reckoning)"), "ukf-dcl": ("tab:green", "UKF-DCL"), "ukf-ccl": ("tab:blue", "UKF-CCL")}
+
+
+def _style(alg: str) -> tuple[str, str]:
+    from swarmloc.estimators import REGISTRY
+
+    return REGISTRY.color(alg), REGISTRY.label(alg)
 
 
 def plot_run(out: Path, record, algorithms: list[str]) -> list[Path]:
+    """plots/trajectories.png (east-north), plots/position_error.png and plots/nees.png."""
+    from swarmloc.results import nees_series, position_errors
+
     out = Path(out) / "plots"
     out.mkdir(parents=True, exist_ok=True)
     truth = record.truth_array()
@@ -30,13 +38,11 @@ def plot_run(out: Path, record, algorithms: list[str]) -> list[Path]:
         ax.plot(truth[:, ci, 0], truth[:, ci, 1], "k-", lw=1.5, label="truth" if ci == 0 else None)
         ax.plot(*truth[0, ci, :2], "ko")
         ax.annotate(f"A{aid}", truth[0, ci, :2], textcoords="offset points", xytext=(5, 5))
-        for alg in ("il", "ukf-dcl"):
-            if alg in traces:
-                color, label = STYLE.get(alg, ("gray", alg))
-                m = traces[alg].mean
-                ax.plot(m[:, ci, 0], m[:, ci, 1], color=color, lw=0.8, label=label if ci == 0 else None)
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
+        for alg, tr in traces.items():
+            color, label = _style(alg)
+            ax.plot(tr.mean[:, ci, 0], tr.mean[:, ci, 1], color=color, lw=0.8, label=label if ci == 0 else None)
+    ax.set_xlabel("x, east (m)")
+    ax.set_ylabel("y, north (m)")
     ax.set_aspect("equal", adjustable="datalim")
     ax.legend(loc="best")
     ax.set_title("Trajectories: truth and estimates")
@@ -44,28 +50,43 @@ def plot_run(out: Path, record, algorithms: list[str]) -> list[Path]:
     fig.savefig(paths[-1], dpi=DPI, bbox_inches="tight")
     plt.close(fig)
 
+    errors = {alg: position_errors(record, tr) for alg, tr in traces.items()}
+    paths.append(_per_agent(out / "position_error.png", record, t, errors, "position error (m)"))
+    nees = {alg: nees_series(record, tr) for alg, tr in traces.items()}
+    paths.append(_per_agent(out / "nees.png", record, t, nees, "NEES", log=True, bounds=True))
+    return paths
+
+
+def _per_agent(path: Path, record, t, series: dict, ylabel: str, log: bool = False, bounds: bool = False) -> Path:
+    """One panel per agent, one line per estimator; NEES panels also show the 95% band of one
+    NEES value (chi-square with the agent's state dimension)."""
+    import scipy.stats
+
     n = len(record.ids)
     cols = min(n, 2)
     rows = (n + cols - 1) // cols
     fig, axes = plt.subplots(rows, cols, figsize=(6 * cols, 2.6 * rows), sharex=True, squeeze=False)
     for ci, aid in enumerate(record.ids):
         ax = axes[ci // cols][ci % cols]
-        for alg, tr in traces.items():
-            color, label = STYLE.get(alg, ("gray", alg))
-            err = np.linalg.norm(tr.mean[:, ci, :2] - truth[:, ci, :2], axis=-1)
-            ax.plot(t, err, color=color, lw=1.0, label=label, ls="--" if alg == "ukf-ccl" else "-")
+        for alg, values in series.items():
+            color, label = _style(alg)
+            ax.plot(t, values[:, ci], color=color, lw=1.0, label=label)
+        if bounds:
+            lo, hi = scipy.stats.chi2.ppf([0.025, 0.975], int(record.dims[ci]))
+            ax.axhspan(lo, hi, color="0.85", zorder=0, label="95% of one value")
+        if log:
+            ax.set_yscale("log")
         ax.set_title(f"A{aid}")
-        ax.set_ylabel("position error (m)")
+        ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
     for ax in axes[-1]:
         ax.set_xlabel("time (s)")
     for extra in axes.flat[n:]:
         extra.set_visible(False)
     axes[0][0].legend(loc="upper left", fontsize=8)
-    paths.append(out / "position_error.png")
-    fig.savefig(paths[-1], dpi=DPI, bbox_inches="tight")
+    fig.savefig(path, dpi=DPI, bbox_inches="tight")
     plt.close(fig)
-    return paths
+    return path
 
 
 def plot_links(out: Path, radio: dict) -> Path:

@@ -11,7 +11,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import scipy.stats
 
+from swarmloc import wire
 from swarmloc.messages import GnssMsg, OdometryMsg, RangeMsg, Sensors
 from swarmloc.node import Estimate
 
@@ -20,44 +22,73 @@ FORMAT_VERSION = 1
 
 @dataclass
 class Trace:
-    """One estimator's means and covariances for every agent and tick."""
+    """One estimator's means and covariances for every agent and tick.
+
+    A swarm may mix models of different state sizes: arrays are as wide as the largest, and
+    agent i's entries beyond dims[i] are NaN."""
 
     ids: np.ndarray  # (N,)
     k: np.ndarray  # (T,)
     t: np.ndarray  # (T,)
     mean: np.ndarray  # (T, N, d), NaN where the agent reported nothing
     cov: np.ndarray  # (T, N, d, d)
+    dims: np.ndarray | None = None  # (N,) state dimension of each agent; None: all d
+
+    def __post_init__(self):
+        if self.dims is None:
+            self.dims = np.full(len(self.ids), self.mean.shape[-1], np.int64)
 
     def save(self, path: Path) -> None:
-        np.savez(path, ids=self.ids, k=self.k, t=self.t, mean=self.mean, cov=self.cov)
+        np.savez(path, ids=self.ids, k=self.k, t=self.t, mean=self.mean, cov=self.cov, dims=self.dims)
 
     @classmethod
     def load(cls, path: Path) -> "Trace":
         with np.load(path, allow_pickle=False) as f:
-            return cls(f["ids"], f["k"], f["t"], f["mean"], f["cov"])
+            return cls(f["ids"], f["k"], f["t"], f["mean"], f["cov"], f["dims"] if "dims" in f else None)
 
 
 class RunRecord:
-    """Everything a run produces, gathered tick by tick (in-process runner or netsim)."""
+    """Everything a run produces, gathered tick by tick (in-process runner or netsim).
 
-    def __init__(self, ids: list[int], d: int):
+    models: each localized agent's motion model (its state size, its position, its error for
+    NEES), or one state size for a swarm of planar robots."""
+
+    def __init__(self, ids: list[int], models: dict | int):
+        from swarmloc.models import MOTION_MODELS
+
         self.ids = sorted(ids)
         self.col = {a: i for i, a in enumerate(self.ids)}
-        self.d = d
+        if isinstance(models, int):
+            models = {a: next(m for m in MOTION_MODELS.values() if m.state_dim == models) for a in self.ids}
+        self.models = {a: MOTION_MODELS[m] if isinstance(m, str) else m for a, m in models.items()}
+        self.dims = np.array([self.models[a].state_dim for a in self.ids], np.int64)
+        self.d = int(self.dims.max())
         self.k: list[int] = []
         self.t: list[float] = []
         self.truth: list[np.ndarray] = []
         self.sensors: list[dict[int, Sensors]] = []
         self.est: dict[str, dict[int, dict[int, Estimate]]] = {}
+        self.nis: dict[str, list[tuple[int, int, float, int]]] = {}  # alg -> (k, agent, nis, dof)
+
+    @classmethod
+    def for_scenario(cls, scenario) -> "RunRecord":
+        return cls(scenario.localized_ids, {a: scenario.agent(a).model for a in scenario.localized_ids})
 
     def add_tick(self, k: int, t: float, frames: dict[int, Sensors], truth: dict[int, np.ndarray]) -> None:
         self.k.append(k)
         self.t.append(t)
         self.sensors.append(frames)
-        self.truth.append(np.stack([truth[a] for a in self.ids]))
+        row = np.full((len(self.ids), self.d), np.nan)
+        for ci, a in enumerate(self.ids):
+            row[ci, : self.dims[ci]] = truth[a]
+        self.truth.append(row)
 
     def add_estimate(self, algorithm: str, aid: int, e: Estimate) -> None:
+        if aid not in self.col:
+            return  # a ground station: nothing to localize
         self.est.setdefault(algorithm, {}).setdefault(e.k, {})[aid] = e
+        for value, dof in e.nis:
+            self.nis.setdefault(algorithm, []).append((e.k, aid, float(value), int(dof)))
 
     def trace(self, algorithm: str) -> Trace:
         T, N, d = len(self.k), len(self.ids), self.d
@@ -66,9 +97,10 @@ class RunRecord:
         by_k = self.est.get(algorithm, {})
         for ti, k in enumerate(self.k):
             for a, e in by_k.get(k, {}).items():
-                mean[ti, self.col[a]] = e.mean
-                cov[ti, self.col[a]] = e.cov
-        return Trace(np.array(self.ids), np.array(self.k), np.array(self.t), mean, cov)
+                n = self.dims[self.col[a]]
+                mean[ti, self.col[a], :n] = e.mean
+                cov[ti, self.col[a], :n, :n] = e.cov
+        return Trace(np.array(self.ids), np.array(self.k), np.array(self.t), mean, cov, self.dims.copy())
 
     def truth_array(self) -> np.ndarray:
         return np.stack(self.truth)
@@ -76,6 +108,25 @@ class RunRecord:
     # ---------------------------------------------------------------- sensor stream as arrays
 
     def sensor_arrays(self) -> dict[str, np.ndarray]:
+        """sensors.npz: every frame bit for bit (`wire`, msgpack per docs/wire.md), and the planar
+        sensors also as plain columns for tools without a msgpack reader."""
+        blobs, offsets = [], np.zeros((len(self.k), len(self.ids) + 1), np.int64)
+        pos = 0
+        for ti, frames in enumerate(self.sensors):
+            offsets[ti, 0] = pos
+            for ci, a in enumerate(self.ids):
+                b = wire.encode(frames[a], 0, 0)
+                blobs.append(b)
+                pos += len(b)
+                offsets[ti, ci + 1] = pos
+        out = {"ids": np.array(self.ids), "k": np.array(self.k), "t": np.array(self.t),
+               "wire": np.frombuffer(b"".join(blobs), np.uint8), "wire_offsets": offsets}
+        planar = [a for a in self.ids if self.models[a].name == "planar-speed-heading"]
+        if planar == self.ids:
+            out.update(self._planar_columns())
+        return out
+
+    def _planar_columns(self) -> dict[str, np.ndarray]:
         odo = np.array([[[s.odometry.dt, s.odometry.speed, s.odometry.heading, s.odometry.speed_std, s.odometry.heading_std]
                          for s in (frames[a] for a in self.ids)] for frames in self.sensors])
         rows = [(k, m, r.target, r.range, r.std) for k, frames in zip(self.k, self.sensors)
@@ -87,7 +138,7 @@ class RunRecord:
                 g = frames[a].gnss
                 if g is not None:
                     gnss[ti, ci] = [*g.position[:2], g.std]
-        return {"ids": np.array(self.ids), "k": np.array(self.k), "t": np.array(self.t), "odometry": odo, "gnss": gnss,
+        return {"odometry": odo, "gnss": gnss,
                 "range_k": rng[:, 0].astype(np.int64), "range_m": rng[:, 1].astype(np.int64),
                 "range_n": rng[:, 2].astype(np.int64), "range_z": rng[:, 3], "range_std": rng[:, 4]}
 
@@ -95,6 +146,10 @@ class RunRecord:
 def frames_from_arrays(a: dict[str, np.ndarray]) -> list[dict[int, Sensors]]:
     """Rebuild the sensor frames of a run from sensors.npz (for references computed offline)."""
     ids = [int(i) for i in a["ids"]]
+    if "wire" in a:
+        data, off = a["wire"].tobytes(), a["wire_offsets"]
+        return [{m: wire.decode(data[off[ti, ci]:off[ti, ci + 1]], expect=(Sensors,)).body for ci, m in enumerate(ids)}
+                for ti in range(len(a["k"]))]
     out = []
     for ti, k in enumerate(a["k"]):
         sel = np.flatnonzero(a["range_k"] == k)
@@ -110,50 +165,103 @@ def frames_from_arrays(a: dict[str, np.ndarray]) -> list[dict[int, Sensors]]:
     return out
 
 
-def compute_references(scenario, record: RunRecord, which=("il", "ukf-ccl")) -> None:
-    """IL and UKF-CCL from the recorded sensor stream, added to the record in place."""
-    from swarmloc.estimators import CentralizedUKF
-    from swarmloc.runner import make_nodes
+def compute_references(scenario, record: RunRecord, which=None) -> None:
+    """The scenario's offline references from the recorded sensor stream, added in place."""
+    from swarmloc.estimators import REGISTRY
 
-    if "il" in which:
-        nodes = make_nodes("il", scenario, record.ids)
+    for name in scenario.reference_names if which is None else which:
+        ref = REGISTRY[name].make_reference(scenario, record.ids)
         for frames in record.sensors:
-            for a, node in nodes.items():
-                node.step(frames[a])
-                record.add_estimate("il", a, node.estimate())
-    if "ukf-ccl" in which:
-        x0 = {a: scenario.prior(a)[0] for a in record.ids}
-        P0 = scenario.prior(record.ids[0])[1]
-        ccl = CentralizedUKF(x0, P0, scenario.agent(record.ids[0]).model, scenario.estimation.spread)
-        for frames in record.sensors:
-            ccl.step(frames)
+            ref.step(frames)
             for a in record.ids:
-                record.add_estimate("ukf-ccl", a, ccl.estimate(a))
+                record.add_estimate(name, a, ref.estimate(a))
+
+
+def chi2_bounds(dof: int, confidence: float = 0.95) -> tuple[float, float]:
+    """Two-sided bounds of a chi-square variable with `dof` degrees of freedom. The mean of n
+    consistent NEES values of d degrees of freedom each is chi2(n d) / n: call with n d and
+    divide by n (as if the values were independent; values of one run are correlated in time,
+    so a run's time average is a looser check than a Monte Carlo average)."""
+    lo, hi = scipy.stats.chi2.ppf([(1 - confidence) / 2, (1 + confidence) / 2], dof)
+    return float(lo), float(hi)
+
+
+def _average_with_bounds(values: np.ndarray, dof_each: np.ndarray) -> dict | None:
+    """Mean of chi-square values and the 95% two-sided bounds of that mean if consistent."""
+    if values.size == 0:
+        return None
+    total = int(dof_each.sum())
+    lo, hi = chi2_bounds(total)
+    n = values.size
+    return {"mean": float(values.mean()), "dof": float(total / n), "n": int(n),
+            "bounds": [lo / n, hi / n], "inside": bool(lo / n <= values.mean() <= hi / n)}
+
+
+def nees_series(record: RunRecord, trace: Trace) -> np.ndarray:
+    """NEES per tick and agent (T, N): NaN where the agent reported nothing."""
+    truth = record.truth_array()
+    T, N = truth.shape[:2]
+    out = np.full((T, N), np.nan)
+    for ci, a in enumerate(record.ids):
+        n, model = int(record.dims[ci]), record.models[a]
+        for ti in range(T):
+            x, P = trace.mean[ti, ci, :n], trace.cov[ti, ci, :n, :n]
+            if np.isnan(x).any() or np.isnan(P).any():
+                continue
+            e = model.error(truth[ti, ci, :n], x)
+            try:
+                out[ti, ci] = float(e @ np.linalg.solve(P, e))
+            except np.linalg.LinAlgError:
+                pass
+    return out
+
+
+def position_errors(record: RunRecord, trace: Trace) -> np.ndarray:
+    """Position error (m) per tick and agent (T, N), each agent in its own position dimension."""
+    truth = record.truth_array()
+    out = np.full(truth.shape[:2], np.nan)
+    for ci, a in enumerate(record.ids):
+        p = record.models[a].position_dim
+        out[:, ci] = np.linalg.norm(trace.mean[:, ci, :p] - truth[:, ci, :p], axis=-1)
+    return out
 
 
 def metrics(record: RunRecord, algorithms: list[str]) -> dict:
-    """Position error per estimator and agent: mean over ticks 1.., final, and mean NEES."""
-    truth = record.truth_array()
-    out: dict = {"ticks": len(record.k), "agents": record.ids, "estimators": {}}
+    """Per estimator and agent: position error (mean over ticks 1.., final, max), NEES and
+    NIS averages with their two-sided 95% chi-square bounds."""
+    out: dict = {"ticks": len(record.k), "agents": record.ids,
+                 "models": {str(a): record.models[a].name for a in record.ids}, "estimators": {}}
     for alg in algorithms:
         tr = record.trace(alg)
-        err = np.linalg.norm(tr.mean[..., :2] - truth[..., :2], axis=-1)  # (T, N)
-        e = tr.mean - truth
-        with np.errstate(invalid="ignore"):
-            nees = np.einsum("tni,tnij,tnj->tn", e, np.linalg.inv(np.where(np.isnan(tr.cov), np.eye(record.d), tr.cov)), e)
-        nees[np.isnan(err)] = np.nan
+        err = position_errors(record, tr)
+        nees = nees_series(record, tr)
+        nis = record.nis.get(alg, [])
         per = {}
+        all_nees, all_dof = [], []
         for ci, a in enumerate(record.ids):
             col = err[1:, ci]
             valid = col[~np.isnan(col)]
+            ne = nees[1:, ci]
+            ne = ne[~np.isnan(ne)]
+            all_nees.append(ne)
+            all_dof.append(np.full(ne.size, record.dims[ci]))
+            mine = [(v, d) for (_, who, v, d) in nis if who == a]
             per[str(a)] = {
                 "mean_error_m": float(valid.mean()) if valid.size else None,
                 "final_error_m": float(col[-1]) if col.size and not np.isnan(col[-1]) else None,
-                "mean_nees": float(np.nanmean(nees[1:, ci])) if valid.size else None,
+                "max_error_m": float(valid.max()) if valid.size else None,
+                "mean_nees": float(ne.mean()) if ne.size else None,
+                "nees": _average_with_bounds(ne, np.full(ne.size, record.dims[ci])),
+                "nis": _average_with_bounds(np.array([v for v, _ in mine]), np.array([d for _, d in mine], np.int64)),
                 "ticks_missing": int(np.isnan(col).sum()),
             }
         vals = [p["mean_error_m"] for p in per.values() if p["mean_error_m"] is not None]
-        out["estimators"][alg] = {"agents": per, "mean_error_m": float(np.mean(vals)) if vals else None}
+        ne, dof = np.concatenate(all_nees), np.concatenate(all_dof)
+        out["estimators"][alg] = {
+            "agents": per, "mean_error_m": float(np.mean(vals)) if vals else None,
+            "nees": _average_with_bounds(ne, dof),
+            "nis": _average_with_bounds(np.array([v for *_, v, _ in nis]), np.array([d for *_, d in nis], np.int64)),
+        }
     return out
 
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from swarmloc import wire
 from swarmloc.messages import Sensors
-from swarmloc.node import Node, Outbox, RadioRx, RadioTx
+from swarmloc.node import Node, Outbox, RadioRx, RadioTx, Timers, estimate_of
 from swarmloc.results import RunRecord
 
 log = logging.getLogger(__name__)
@@ -44,14 +44,18 @@ class InProcessRunner:
         self.env, self.nodes = env, nodes
         self.max_rounds = max_rounds_per_tick
         self.outbox = {a: Outbox(a) for a in nodes}
+        self.timers = {a: Timers() for a in nodes}
         self.frames = 0
+        self.t = 0.0
 
     def run(self, record: RunRecord | None = None,
             on_tick: Callable[[int, dict[int, Sensors]], None] | None = None) -> RunRecord:
-        record = record or RunRecord(sorted(self.nodes), next(iter(self.nodes.values())).model.state_dim)
+        record = record or RunRecord([a for a, n in self.nodes.items() if n.model.state_dim > 0],
+                                     {a: n.model for a, n in self.nodes.items() if n.model.state_dim > 0})
         for _ in range(self.env.steps + 1):
             k, t, frames = self.env.tick()
-            sent = [tx for a in sorted(self.nodes) for tx in self._encode(a, self.nodes[a].step(frames[a]))]
+            self.t = t
+            sent = [tx for a in sorted(self.nodes) for tx in self._encode(a, self._step(a, frames[a], t))]
             rounds = 0
             while sent:
                 rounds += 1
@@ -61,10 +65,16 @@ class InProcessRunner:
                         for tx in self._encode(rx.receiver, self._deliver(rx))]
             record.add_tick(k, t, frames, self.env.truth())
             for a, node in self.nodes.items():
-                record.add_estimate(node.algorithm, a, node.estimate())
+                record.add_estimate(node.algorithm, a, estimate_of(node))
             if on_tick:
                 on_tick(k, frames)
         return record
+
+    def _step(self, a: int, sensors: Sensors, t: float) -> list:
+        """Timers due by this tick first (Timer: lockstep semantics), then the sensor frame."""
+        node = self.nodes[a]
+        actions = [x for tag in self.timers[a].pop_due(t) for x in node.on_timer(tag, t)]
+        return actions + node.step(sensors)
 
     def _deliver(self, rx: RadioRx) -> list:
         node = self.nodes[rx.receiver]
@@ -74,7 +84,8 @@ class InProcessRunner:
         env = wire.decode(rx.data)
         return [] if env.src == rx.receiver else node.receive(env.src, env.body)
 
-    def _encode(self, src: int, sends) -> list[RadioTx]:
+    def _encode(self, src: int, actions) -> list[RadioTx]:
+        sends = self.timers[src].split(actions, self.t)
         txs = [tx for s in sends if (tx := self.outbox[src].encode(s)) is not None]
         self.frames += len(txs)
         return txs
@@ -82,9 +93,6 @@ class InProcessRunner:
 
 def make_nodes(algorithm: str, scenario, ids: Iterable[int] | None = None) -> dict[int, Node]:
     """One node per agent with the scenario's prior (Scenario.prior)."""
-    from swarmloc.estimators import NODE_TYPES
+    from swarmloc.estimators import make_nodes as make
 
-    cls = NODE_TYPES[algorithm]
-    est = scenario.estimation
-    kwargs = {"spread": est.spread, "rejoin_std": est.rejoin_std} if algorithm == "ukf-dcl" else {}
-    return {a: cls(a, *scenario.prior(a), scenario.agent(a).model, **kwargs) for a in ids or scenario.agent_ids}
+    return make(algorithm, scenario, ids)

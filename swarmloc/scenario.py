@@ -56,15 +56,52 @@ class RandomMotion(_Strict):
     turn_rate_tau: float = Field(10.0, gt=0, description="correlation time of the turn rate (s)")
 
 
-Motion = Annotated[Union[CircleMotion, RandomMotion], Field(discriminator="kind")]
+class Figure8Motion(_Strict):
+    kind: Literal["figure8"] = "figure8"
+    width: float = Field(200.0, gt=0, description="m, along the figure's axis")
+    height: float | None = Field(None, gt=0, description="m, across the axis; default width/2")
+    period: float = Field(60.0, gt=0, description="s for one figure")
+    heading: float = Field(0.0, description="rad, the axis counter-clockwise from east")
+    climb: float = Field(0.0, ge=0, description="m, amplitude of an altitude wave with the figure's period")
+    phase: float = Field(0.0, description="rad, where on the figure the flight starts")
+
+
+class OrbitMotion(_Strict):
+    kind: Literal["orbit"] = "orbit"
+    radius: float = Field(50.0, gt=0, description="m")
+    speed: float = Field(10.0, gt=0, description="m/s")
+    phase: float = Field(0.0, description="rad: the start point's angle around the orbit's centre, counter-clockwise from east")
+    clockwise: bool = False
+
+
+class Random3dMotion(_Strict):
+    kind: Literal["random3d"] = "random3d"
+    radius: float = Field(100.0, gt=0, description="m, of the loiter circle the flight wanders around")
+    speed: float = Field(12.0, gt=0, description="m/s, mean")
+    wander: float = Field(0.4, ge=0, lt=1, description="speed varies within (1 +- wander) speed")
+    vertical: float = Field(0.2, ge=0, description="scale of the vertical wander")
+
+
+class StaticMotion(_Strict):
+    kind: Literal["static"] = "static"
+
+
+Motion = Annotated[Union[CircleMotion, RandomMotion, Figure8Motion, OrbitMotion, Random3dMotion, StaticMotion],
+                   Field(discriminator="kind")]
+# Which motions each model's world can fly: planar robots drive, UAS fly 3D trajectories placed
+# so that they pass through `start` at t = 0, a ground station stays where it is.
+MOTIONS_OF_MODEL = {"planar-speed-heading": ("circle", "random"), "uas-ins": ("figure8", "orbit", "random3d"),
+                    "ground-station": ("static",)}
 
 
 class AgentSpec(_Strict):
     id: int = Field(ge=0, description="agent id, unique in the swarm")
     model: str = Field("planar-speed-heading", description="motion model name (swarmloc.models.MOTION_MODELS)")
-    start: list[float] = Field(description="initial position (m), known to the agent")
-    heading: float = Field(0.0, description="initial heading (rad), known to the agent")
-    motion: Motion = Field(default_factory=CircleMotion)
+    start: list[float] = Field(description="initial position (m), known to the agent: 2 numbers for a planar model, "
+                               "3 (east, north, up) for uas-ins and ground-station")
+    heading: float = Field(0.0, description="planar: initial heading (rad), known to the agent")
+    motion: Motion | None = Field(None, description="how the platform moves; default: circle (planar), figure8 (uas-ins), "
+                                  "static (ground-station)")
 
     @field_validator("model")
     @classmethod
@@ -75,10 +112,21 @@ class AgentSpec(_Strict):
 
     @model_validator(mode="after")
     def _start_dim(self):
-        want = MOTION_MODELS[self.model].state_dim
+        want = MOTION_MODELS[self.model].position_dim
         if len(self.start) != want or not all(math.isfinite(v) for v in self.start):
             raise ValueError(f"start must be {want} finite numbers for model {self.model}")
+        kinds = MOTIONS_OF_MODEL[self.model]
+        if self.motion is None:
+            default = {"circle": CircleMotion, "figure8": Figure8Motion, "static": StaticMotion}[kinds[0]]
+            object.__setattr__(self, "motion", default())
+        elif self.motion.kind not in kinds:
+            raise ValueError(f"motion {self.motion.kind!r} does not fit model {self.model} (one of {list(kinds)})")
         return self
+
+    @property
+    def localized(self) -> bool:
+        """Whether the platform is one the swarm localizes (a ground station is not)."""
+        return MOTION_MODELS[self.model].state_dim > 0
 
 
 class World(_Strict):
@@ -103,17 +151,51 @@ class RangeSensor(_Strict):
     probability: float = Field(0.5, ge=0, le=1, description="chance per step and per slot that a measurement happens")
     max_per_step: int = Field(1, ge=0, description="measurement slots per step in the whole swarm")
     max_range: float = Field(math.inf, gt=0, description="sensing range (m): pairs farther apart are never measured")
+    all_pairs: bool = Field(False, description="UAS: instead of random slots, every platform ranges every other "
+                            "platform within max_range once per `sensors.epoch`")
 
 
 class GnssSensor(_Strict):
-    enabled: bool = Field(False, description="publish a GNSS position fix every step")
-    noise: float = Field(2.0, gt=0, description="std of each horizontal coordinate (m)")
+    enabled: bool = Field(False, description="a GNSS receiver on the platforms (planar: a position fix every step; "
+                          "UAS: one epoch every `sensors.epoch` s)")
+    kind: Literal["position", "pseudorange"] = Field("position", description="UAS: what the receiver reports, a 3D "
+                                                     "position fix or the pseudoranges of the simulated constellation")
+    noise: float = Field(2.0, gt=0, description="std of each horizontal coordinate of a position fix (m)")
+    noise_vertical: float | None = Field(None, gt=0, description="UAS: std of the vertical coordinate of a fix (m); "
+                                         "default: `noise`")
+    pseudorange_noise: float = Field(1.0, gt=0, description="UAS: std of a pseudorange (m)")
+    mask_deg: float = Field(10.0, ge=0, lt=90, description="UAS: elevation mask of the constellation (deg)")
+    agents: list[int] | None = Field(None, description="agents with a receiver; null: all")
+
+
+class ImuSensor(_Strict):
+    """UAS: a strapdown IMU; the defaults are an industrial MEMS unit (docs/uas.md)."""
+
+    rate_hz: float = Field(100.0, gt=0, description="IMU samples per second; a tick carries dt * rate_hz of them "
+                           "(clock.dt must be a whole number of IMU intervals)")
+    gyro_arw: float = Field(8.73e-5, ge=0, description="angle random walk (rad/s/sqrt(Hz)); 8.73e-5 = 0.3 deg/sqrt(h)")
+    accel_vrw: float = Field(1.0e-3, ge=0, description="velocity random walk (m/s^2/sqrt(Hz))")
+    gyro_bias_rw: float = Field(8.08e-7, ge=0, description="gyro bias random walk (rad/s/sqrt(s))")
+    accel_bias_rw: float = Field(1.63e-5, ge=0, description="accelerometer bias random walk (m/s^2/sqrt(s))")
+    gyro_bias_sigma0: float = Field(4.85e-4, ge=0, description="turn-on gyro bias std (rad/s); 4.85e-4 = 100 deg/h")
+    accel_bias_sigma0: float = Field(2.94e-2, ge=0, description="turn-on accelerometer bias std (m/s^2); 2.94e-2 = 3 mg")
+
+
+class RelPosSensor(_Strict):
+    enabled: bool = Field(False, description="UAS: every platform measures the relative position (ENU) of every "
+                          "other platform within max_range, once per `sensors.epoch`")
+    noise: float = Field(0.05, gt=0, description="std of each component (m)")
+    max_range: float = Field(math.inf, gt=0, description="sensing range (m)")
 
 
 class Sensors(_Strict):
     odometry: OdometrySensor = Field(default_factory=OdometrySensor)
     range: RangeSensor = Field(default_factory=RangeSensor)
     gnss: GnssSensor = Field(default_factory=GnssSensor)
+    imu: ImuSensor = Field(default_factory=ImuSensor)
+    relpos: RelPosSensor = Field(default_factory=RelPosSensor)
+    epoch: float = Field(1.0, gt=0, description="UAS: seconds between GNSS epochs and between relative measurements "
+                         "(a whole number of ticks)")
 
 
 RADIO_MODELS = ("unit-disk", "log-distance")
@@ -132,7 +214,19 @@ class Estimation(_Strict):
                                      "null: never")
 
 
-ESTIMATORS = ("il", "ukf-dcl", "ukf-ccl")
+class EstimatorChoice(_Strict):
+    name: str = Field("ukf-dcl", description="the estimator the agent processes run (`swarmloc estimators` lists them)")
+    params: dict = Field(default_factory=dict, description="its settings; each estimator documents and validates its own")
+
+    @model_validator(mode="after")
+    def _known(self):
+        from swarmloc.estimators import REGISTRY
+
+        info = REGISTRY.get(self.name)
+        if info is None or not info.runs_on_agents:
+            raise ValueError(f"unknown estimator {self.name!r}; agents run one of {sorted(REGISTRY.running())}")
+        info.settings(self.params)  # raises ValueError naming the bad parameter
+        return self
 
 
 class Scenario(_Strict):
@@ -146,8 +240,33 @@ class Scenario(_Strict):
     radio: dict = Field(default_factory=lambda: {"model": "unit-disk"},
                         description="channel model and its parameters (docs/radio.md); netsim validates the parameters")
     estimation: Estimation = Field(default_factory=Estimation)
-    estimators: list[Literal["il", "ukf-dcl", "ukf-ccl"]] = Field(default_factory=lambda: list(ESTIMATORS))
+    estimator: EstimatorChoice = Field(default_factory=EstimatorChoice)
+    references: list[str] | None = Field(None, description="estimators computed offline from the recorded sensor stream "
+                                         "after the run; null: every reference that fits the swarm's models")
     faults: list[Fault] = Field(default_factory=list, description="fault timeline: each fault with `at` (docs/faults.md)")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _old_estimators(cls, data):
+        # Before `estimator` and `references`, one list named the estimators to report; the
+        # agents always ran ukf-dcl, the others were offline references.
+        if isinstance(data, dict) and "estimators" in data:
+            data = dict(data)
+            old = data.pop("estimators")
+            if "references" not in data and isinstance(old, list):
+                data["references"] = [e for e in old if e != "ukf-dcl"]
+        return data
+
+    @field_validator("references")
+    @classmethod
+    def _known_references(cls, v):
+        from swarmloc.estimators import REGISTRY
+
+        if v is not None:
+            bad = [r for r in v if r not in REGISTRY.references()]
+            if bad:
+                raise ValueError(f"unknown references {bad}; known: {sorted(REGISTRY.references())}")
+        return v
 
     @field_validator("version")
     @classmethod
@@ -174,9 +293,41 @@ class Scenario(_Strict):
                 raise ValueError(f"faults[{i}] ({f.action}) names unknown agents {bad}")
         return self
 
+    @model_validator(mode="after")
+    def _models_fit(self):
+        ids = {a.id for a in self.world.agents}
+        g = self.sensors.gnss.agents
+        if g is not None and set(g) - ids:
+            raise ValueError(f"sensors.gnss.agents names unknown agents {sorted(set(g) - ids)}")
+        from swarmloc.estimators import REGISTRY
+
+        info = REGISTRY[self.estimator.name]
+        models = {a.model for a in self.world.agents if a.localized}
+        if not models <= set(info.models):
+            raise ValueError(f"estimator {info.name} runs on models {list(info.models)}, the swarm has {sorted(models)}")
+        for r in self.references or ():
+            if not models <= set(REGISTRY[r].models):
+                raise ValueError(f"reference {r} runs on models {list(REGISTRY[r].models)}, the swarm has {sorted(models)}")
+        return self
+
     @property
     def agent_ids(self) -> list[int]:
         return sorted(a.id for a in self.world.agents)
+
+    @property
+    def localized_ids(self) -> list[int]:
+        """The platforms the swarm localizes (every agent but ground stations)."""
+        return sorted(a.id for a in self.world.agents if a.localized)
+
+    @property
+    def reference_names(self) -> list[str]:
+        """The offline references of this run: those the scenario names, or every one that fits."""
+        from swarmloc.estimators import REGISTRY
+
+        if self.references is not None:
+            return list(self.references)
+        models = {a.model for a in self.world.agents if a.localized}
+        return [r for r in REGISTRY.references() if models <= set(REGISTRY[r].models)]
 
     def agent(self, aid: int) -> AgentSpec:
         return next(a for a in self.world.agents if a.id == aid)

@@ -3,7 +3,7 @@
 import numpy as np
 
 from netsim.sim import Simulation
-from swarmloc.estimators import CentralizedUKF
+from swarmloc.estimators.ukf_ccl import CentralizedUKF
 from swarmloc.messages import Sensors
 from swarmloc.runner import InProcessRunner, make_nodes
 

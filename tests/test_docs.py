@@ -9,7 +9,7 @@ import pytest
 
 from helpers import in_process
 from swarmloc import scenario as S
-from swarmloc.estimators import CentralizedUKF
+from swarmloc.estimators.ukf_ccl import CentralizedUKF
 from swarmloc.messages import Sensors
 from swarmloc.results import compute_references, frames_from_arrays, write_run
 

@@ -8,7 +8,7 @@ import pytest
 from netsim.sim import Simulation
 from swarmloc import scenario as S
 from swarmloc import wire
-from swarmloc.estimators import UkfDclNode
+from swarmloc.estimators.ukf_dcl import UkfDclNode
 from swarmloc.messages import DclCommit, DclToken
 from swarmloc.results import compute_references, metrics
 from swarmloc.runner import InProcessRunner, make_nodes

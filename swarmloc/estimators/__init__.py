@@ -1,9 +1,180 @@
-"""Estimators: each is a sans-I/O Node (distributed) or a batch reference over a sensor stream."""
+"""Estimators, and the one registry every part of swarmloc reads them from.
 
-from swarmloc.estimators.il import IndependentNode
-from swarmloc.estimators.ukf_ccl import CentralizedUKF
-from swarmloc.estimators.ukf_dcl import UkfDclNode
+An estimator is either run by the agent processes (a sans-I/O `Node` per agent) or computed
+offline from the recorded sensor stream as a reference (or both). The CLI's summary and its
+`--estimator` choices, the scenario's validation, the run directory, the metrics and the plots
+all take names, labels, colours and supported models from `REGISTRY`; adding an estimator is
+one entry here plus its own module.
 
-NODE_TYPES = {IndependentNode.algorithm: IndependentNode, UkfDclNode.algorithm: UkfDclNode}
+Factories are named by "module:attribute" and imported on first use, so reading the registry
+(the CLI's help, scenario validation) does not import every estimator's maths.
+"""
 
-__all__ = ["IndependentNode", "UkfDclNode", "CentralizedUKF", "NODE_TYPES"]
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass, field
+from typing import Any, Callable, Iterable
+
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+PLANAR = ("planar-speed-heading",)
+UAS = ("uas-ins",)
+
+
+class NoSettings(BaseModel):
+    """An estimator without parameters of its own."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+def _resolve(path: str) -> Any:
+    module, _, attr = path.partition(":")
+    obj: Any = importlib.import_module(module)
+    for part in attr.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+@dataclass(frozen=True)
+class EstimatorInfo:
+    """What the rest of swarmloc knows about one estimator.
+
+    node: "module:callable", callable(scenario, aid, settings) -> Node, for an estimator the
+    agents run. reference: "module:callable", callable(scenario, ids, settings) -> an object
+    with step(frames) and estimate(aid), for one computed offline; None for a per-agent filter
+    (its nodes are then run offline one by one). settings: "module:PydanticModel" validating
+    the scenario's `estimator.params`."""
+
+    name: str
+    label: str
+    description: str
+    models: tuple[str, ...]
+    color: str
+    node: str | None = None
+    reference: bool = False
+    batch: str | None = None
+    settings_path: str | None = None
+    paper: str = ""
+
+    @property
+    def runs_on_agents(self) -> bool:
+        return self.node is not None
+
+    def settings(self, params: dict | None = None) -> BaseModel:
+        """The validated parameters (ValueError naming the bad field otherwise)."""
+        model = _resolve(self.settings_path) if self.settings_path else NoSettings
+        try:
+            return model.model_validate(params or {})
+        except ValidationError as exc:
+            bad = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+            raise ValueError(f"estimator {self.name} params: {bad}") from None
+
+    def make_node(self, scenario, aid: int, settings: BaseModel | None = None):
+        if self.node is None:
+            raise ValueError(f"{self.name} is a reference, not run by agents")
+        return _resolve(self.node)(scenario, aid, settings if settings is not None else self.settings())
+
+    def make_reference(self, scenario, ids: list[int], settings: BaseModel | None = None):
+        settings = settings if settings is not None else self.settings()
+        if self.batch is not None:
+            return _resolve(self.batch)(scenario, ids, settings)
+        return PerNodeReference({a: self.make_node(scenario, a, settings) for a in ids})
+
+
+class PerNodeReference:
+    """A per-agent filter computed offline: each node alone on its own sensor frames."""
+
+    def __init__(self, nodes: dict):
+        self.nodes = nodes
+
+    def step(self, frames: dict) -> None:
+        for a, node in self.nodes.items():
+            node.step(frames[a])
+
+    def estimate(self, aid: int):
+        return self.nodes[aid].estimate()
+
+
+@dataclass
+class Registry:
+    entries: dict[str, EstimatorInfo] = field(default_factory=dict)
+
+    def add(self, info: EstimatorInfo) -> None:
+        if info.name in self.entries:
+            raise ValueError(f"estimator {info.name} registered twice")
+        self.entries[info.name] = info
+
+    def __getitem__(self, name: str) -> EstimatorInfo:
+        return self.entries[name]
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.entries
+
+    def __iter__(self):
+        return iter(self.entries.values())
+
+    def get(self, name: str) -> EstimatorInfo | None:
+        return self.entries.get(name)
+
+    def running(self) -> list[str]:
+        """Names the agents can run."""
+        return [e.name for e in self if e.runs_on_agents]
+
+    def references(self) -> list[str]:
+        """Names computable offline from a run's sensor stream."""
+        return [e.name for e in self if e.reference]
+
+    def label(self, name: str) -> str:
+        e = self.get(name)
+        return e.label if e else name
+
+    def color(self, name: str) -> str:
+        e = self.get(name)
+        return e.color if e else "0.5"
+
+    def order(self, names: Iterable[str]) -> list[str]:
+        """Names in registry order (the order of summaries and legends)."""
+        names = set(names)
+        return [e.name for e in self if e.name in names] + sorted(n for n in names if n not in self.entries)
+
+
+REGISTRY = Registry()
+for _info in (
+    EstimatorInfo("il", "IL", "dead reckoning on odometry alone, each robot by itself", PLANAR, "tab:gray",
+                  node="swarmloc.estimators.il:IndependentNode.from_scenario", reference=True,
+                  paper="Wang et al. 2019 (baseline)"),
+    EstimatorInfo("ukf-dcl", "UKF-DCL", "distributed UKF over serial chains of the robots a measurement correlates",
+                  PLANAR, "tab:blue", node="swarmloc.estimators.ukf_dcl:UkfDclNode.from_scenario",
+                  paper="Wang et al. 2019"),
+    EstimatorInfo("ukf-ccl", "UKF-CCL", "centralized UKF over the joint state of the swarm", PLANAR, "tab:orange",
+                  reference=True, batch="swarmloc.estimators.ukf_ccl:CentralizedUKF.from_scenario",
+                  paper="Wang et al. 2019 (gold standard)"),
+    EstimatorInfo("ekf", "EKF alone", "each UAS's own INS/GNSS EKF, nothing shared", UAS, "tab:gray",
+                  node="swarmloc.estimators.ekf:EkfNode.from_scenario", reference=True,
+                  paper="Goel et al. 2016 (no sharing)"),
+    EstimatorInfo("ekf-ci", "EKF-CI", "each UAS's EKF fuses its neighbours' estimates through relative measurements "
+                  "with covariance intersection", UAS, "tab:green", node="swarmloc.estimators.ekf_ci:CiNode.from_scenario",
+                  settings_path="swarmloc.estimators.ekf_ci:CiSettings", paper="Goel et al. 2016, section 4"),
+    EstimatorInfo("ekf-naive", "EKF naive", "as EKF-CI, but neighbours' estimates are fused as if independent",
+                  UAS, "tab:red", node="swarmloc.estimators.ekf_ci:NaiveNode.from_scenario",
+                  settings_path="swarmloc.estimators.ekf_ci:CiSettings", paper="baseline for Goel et al. 2016"),
+    EstimatorInfo("ekf-centre", "EKF centre", "a fusion-centre process runs the joint EKF of the swarm over the radio; "
+                  "UAS fall back to their own EKF when it is out of reach", UAS, "tab:purple",
+                  node="swarmloc.estimators.fusion_centre:make_node",
+                  settings_path="swarmloc.estimators.fusion_centre:CentreSettings", paper="Goel et al. 2016, section 3"),
+    EstimatorInfo("ekf-ccl", "EKF-CCL", "centralized EKF over the joint state of the swarm, offline", UAS, "tab:olive",
+                  reference=True, batch="swarmloc.estimators.ekf_ccl:CentralizedEkf.from_scenario",
+                  paper="Goel et al. 2016, section 3"),
+):
+    REGISTRY.add(_info)
+
+
+def make_nodes(name: str, scenario, ids: Iterable[int] | None = None, params: dict | None = None) -> dict:
+    """One node per agent (ground stations included) for the estimator `name`."""
+    info = REGISTRY[name]
+    settings = info.settings(scenario.estimator.params if params is None and scenario.estimator.name == name else params)
+    return {a: info.make_node(scenario, a, settings) for a in (ids if ids is not None else scenario.agent_ids)}
+
+
+__all__ = ["REGISTRY", "EstimatorInfo", "Registry", "make_nodes", "PerNodeReference", "NoSettings"]

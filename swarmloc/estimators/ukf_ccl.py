@@ -30,6 +30,11 @@ class CentralizedUKF:
         self.meas = Range(self.model)
         self.k = -1
 
+    @classmethod
+    def from_scenario(cls, scenario, ids, settings=None):
+        x0 = {a: scenario.prior(a)[0] for a in ids}
+        return cls(x0, scenario.prior(ids[0])[1], scenario.agent(ids[0]).model, scenario.estimation.spread)
+
     def block(self, a: int) -> slice:
         i = self.index[a]
         return slice(i * self.d, (i + 1) * self.d)

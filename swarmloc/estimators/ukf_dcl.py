@@ -65,6 +65,11 @@ HOLD_TICKS = 10  # real time: longest wait for the commit of a chain we reported
 class UkfDclNode(Node):
     algorithm = "ukf-dcl"
 
+    @classmethod
+    def from_scenario(cls, scenario, aid, settings=None):
+        est = scenario.estimation
+        return cls(aid, *scenario.prior(aid), scenario.agent(aid).model, spread=est.spread, rejoin_std=est.rejoin_std)
+
     def __init__(self, aid, x0, P0, model="planar-speed-heading", spread: float | None = None, max_retries: int = 3,
                  rejoin_std: float | None = 15.0):
         super().__init__(aid, x0, P0, model)
