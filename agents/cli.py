@@ -137,6 +137,22 @@ ConnectOpt = typer.Option(None, "--connect", callback=_endpoints,
 # ------------------------------------------------------------------------------------ scenarios
 
 
+@app.command("estimators")
+def list_estimators():
+    """List the estimators: what agents can run (scenario `estimator`, --estimator) and the
+    references computed offline from a run's sensor stream (scenario `references`)."""
+    from rich.table import Table
+
+    from swarmloc.estimators import REGISTRY
+
+    t = Table("name", "agents", "reference", "models", "paper", "what it does")
+    for e in REGISTRY:
+        t.add_row(e.name, "yes" if e.runs_on_agents else "", "yes" if e.reference else "", ", ".join(e.models),
+                  e.paper, e.description)
+    _console().print(t)
+
+
+
 @app.command("scenarios")
 def list_scenarios():
     """List the built-in scenarios."""

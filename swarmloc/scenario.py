@@ -299,6 +299,11 @@ class Scenario(_Strict):
         g = self.sensors.gnss.agents
         if g is not None and set(g) - ids:
             raise ValueError(f"sensors.gnss.agents names unknown agents {sorted(set(g) - ids)}")
+        if any(a.model == "uas-ins" for a in self.world.agents):
+            for what, x in (("clock.dt * sensors.imu.rate_hz", self.clock.dt * self.sensors.imu.rate_hz),
+                            ("sensors.epoch / clock.dt", self.sensors.epoch / self.clock.dt)):
+                if round(x) < 1 or abs(x - round(x)) > 1e-9 * max(1.0, x):
+                    raise ValueError(f"{what} must be a whole number >= 1 for uas-ins agents, got {x:.6g}")
         from swarmloc.estimators import REGISTRY
 
         info = REGISTRY[self.estimator.name]

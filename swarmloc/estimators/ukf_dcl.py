@@ -48,6 +48,7 @@ import numpy as np
 from swarmloc import kalman
 from swarmloc.messages import (CHAIN_OK, CHAIN_REFUSED, CHAIN_UNREACHABLE, CHAIN_VERSION, Beacon, DclCommit, DclLog,
                                DclStart, DclSync, DclToken, Sensors)
+from swarmloc.estimators.neighbours import NeighbourTable, RetryBudget
 from swarmloc.estimators.rejoin import Multilateration
 from swarmloc.models import Range
 from swarmloc.node import Estimate, Node, Send, keyed_ranges, odometry_of
@@ -78,7 +79,7 @@ class UkfDclNode(Node):
         self.finder = Multilateration(self.model.position_dim)
         self.lost_ranges: list[tuple[int, int, float, float]] = []  # own ranges while lost: (k, target, r, var)
         self.max_retries = max_retries
-        self.retries: dict[tuple, int] = {}  # (message type, dst, k, epoch) -> resends so far
+        self.retries = RetryBudget()  # keyed (message type, dst, k, epoch)
         self.ut = kalman.UnscentedTransform.for_pair(self.model.state_dim, spread)
         self.meas = Range(self.model)
         self._upper = np.triu_indices(2 * self.model.state_dim, 1)  # must be zero in a Cholesky factor
@@ -98,7 +99,7 @@ class UkfDclNode(Node):
         self.epoch = 0
         self.pending: dict[Key, tuple[np.ndarray, np.ndarray]] = {}  # own measurements not yet finished
         self.known_pending: set[Key] = set()  # keys of this tick seen from others
-        self.beacons: dict[int, dict[int, tuple[np.ndarray, np.ndarray]]] = {}  # j -> {tick: (position, cov)}
+        self.beacons = NeighbourTable(self.id, self.model.position_dim, NEIGHBOUR_TICKS)
         self.neighbours: dict[int, np.ndarray] = {}  # snapshot for this tick
         self.held: list[tuple[int, object]] = []  # early frames: (src, msg)
         self.seen: set[tuple] = set()  # fingerprints of chain frames handled, this tick and later
@@ -160,15 +161,9 @@ class UkfDclNode(Node):
             self._make_orphan(f"{len(stuck)} commits whose history never arrived")
             self._apply_ready()
 
-        # Neighbours are those heard in the last NEIGHBOUR_TICKS ticks before this one (their
-        # latest position): in lockstep all those beacons have arrived by now, so every node
-        # routes on the same snapshot whatever the delivery order; the window rides out a lost
-        # beacon or two on a lossy radio (a stale neighbour costs a NACK, a missing one a detour).
-        lo = self.k - NEIGHBOUR_TICKS
-        for j in list(self.beacons):
-            self.beacons[j] = {t: p for t, p in self.beacons[j].items() if t >= lo}
-        self.neighbours = {j: b[max(t for t in b if t < self.k)][0] for j, b in self.beacons.items()
-                           if any(t < self.k for t in b)}
+        # Every node routes on the same snapshot whatever the delivery order (NeighbourTable); a
+        # stale neighbour costs a NACK, a missing one a detour.
+        self.neighbours = self.beacons.snapshot(self.k)
         self._find_self()
 
         for key, r in keyed_ranges(self.id, sensors):
@@ -210,9 +205,8 @@ class UkfDclNode(Node):
 
     def receive(self, src, msg) -> list[Send]:
         if isinstance(msg, Beacon):
-            p = self.model.position_dim
-            if msg.position.shape == (p,) and msg.cov.shape == (p, p) and src != self.id:
-                self.beacons.setdefault(src, {})[msg.k] = (msg.position, msg.cov)
+            if self.beacons.valid(src, msg):
+                self.beacons.hear(src, msg)
                 out = self._on_version(src, msg.version)
                 if self.reported is not None and msg.k > self.reported[0]:
                     out += self._resolve_report(src, m_version=msg.version)
@@ -468,17 +462,13 @@ class UkfDclNode(Node):
         """A unicast did not arrive. Try the same hop again a few times (a lossy link often
         passes the next frame); then route around it, forgetting that neighbour for the tick."""
         if isinstance(msg, (DclSync, DclLog)):
-            tries = self.retries.get((msg.TYPE, dst, msg.k, -1), 0)
-            if tries < self.max_retries:
-                self.retries[(msg.TYPE, dst, msg.k, -1)] = tries + 1
+            if self.retries.again((msg.TYPE, dst, msg.k, -1), self.max_retries):
                 return [Send(msg, dst)]
             return self.drop("undeliverable", msg.TYPE)  # the next beacon asks again
         if not isinstance(msg, (DclStart, DclToken, DclCommit)) or (msg.k != self.k and not isinstance(msg, DclCommit)):
             return self.drop("undeliverable", type(msg).__name__)  # a chain step of a tick that is over
-        tries = self.retries.get((msg.TYPE, dst, msg.k, msg.epoch), 0)
         # A lost commit costs dst a replay later; a lost token only a detour: try commits harder.
-        if tries < self.max_retries * (3 if isinstance(msg, DclCommit) else 1):
-            self.retries[(msg.TYPE, dst, msg.k, msg.epoch)] = tries + 1
+        if self.retries.again((msg.TYPE, dst, msg.k, msg.epoch), self.max_retries * (3 if isinstance(msg, DclCommit) else 1)):
             return [Send(msg, dst)]
         self.neighbours.pop(dst, None)
         if isinstance(msg, DclCommit):
@@ -707,11 +697,11 @@ class UkfDclNode(Node):
         if not self.lost:
             return
         for k, j, r, var in self.lost_ranges:
-            beacon = self.beacons.get(j, {}).get(k)
+            beacon = self.beacons.get(j, k)
             if beacon is not None:
                 self.finder.add(k, beacon[0], beacon[1], r, var)
         self.lost_ranges = [(k, j, r, var) for k, j, r, var in self.lost_ranges
-                            if k not in self.beacons.get(j, {}) and k >= self.k - NEIGHBOUR_TICKS]
+                            if not self.beacons.heard(j, k) and k >= self.k - NEIGHBOUR_TICKS]
         fix = self.finder.solve(self.model.position(self.x))
         # Half the threshold: the covariance-intersection removal that follows scales the block
         # by the group's size, and a fix that leaves us lost again is no fix.
