@@ -195,6 +195,20 @@ def ci_update(
     return x_new, P_new, omega
 
 
+def ci_split(size: int, removed: int) -> tuple[float, float]:
+    """Covariance intersection that cuts `removed` members out of a correlated group of `size`.
+
+    A group whose joint covariance is known but whose members' cross-covariances with the
+    removed ones are not (UKF-DCL's orphans) is bounded by CI over the parts with weights
+    1/size for each removed member and (size - removed)/size for the rest: each part's
+    covariance is divided by its weight and the cross-covariances between parts are dropped.
+    Returns (the factor of the rest's covariances, the factor of a removed member's own
+    covariance), i.e. (size / (size - removed), size)."""
+    if not 0 <= removed < size:
+        raise ValueError(f"cannot remove {removed} of a group of {size}")
+    return size / (size - removed), float(size)
+
+
 def naive_fusion(
     x: np.ndarray, P: np.ndarray, z_est: np.ndarray, Pz_est: np.ndarray, H: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -268,3 +268,15 @@ def test_argument_errors():
         fusion.covariance_intersection(np.zeros(3), P, np.zeros(3), P, omega=1.5)
     with pytest.raises(ValueError):
         fusion.ci_update(np.zeros(3), P, np.zeros(2), np.eye(2), np.eye(2, 3), omega=0.0)
+
+
+def test_ci_split_bounds_the_group_it_cuts():
+    """Cutting one member out of a correlated pair by CI (weights 1/2, 1/2): the scaled,
+    decorrelated blocks bound the true joint covariance for every direction."""
+    rest, own = fusion.ci_split(2, 1)
+    assert (rest, own) == (2.0, 2.0)
+    P = np.array([[2.0, 1.5], [1.5, 3.0]])
+    bound = np.diag([own * P[0, 0], rest * P[1, 1]])
+    assert np.linalg.eigvalsh(bound - P).min() >= -1e-12
+    with pytest.raises(ValueError):
+        fusion.ci_split(3, 3)

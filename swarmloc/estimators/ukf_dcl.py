@@ -45,7 +45,7 @@ from collections import deque
 
 import numpy as np
 
-from swarmloc import kalman
+from swarmloc import fusion, kalman
 from swarmloc.messages import (CHAIN_OK, CHAIN_REFUSED, CHAIN_UNREACHABLE, CHAIN_VERSION, Beacon, DclCommit, DclLog,
                                DclStart, DclSync, DclToken, Sensors)
 from swarmloc.estimators.neighbours import NeighbourTable, RetryBudget
@@ -599,17 +599,18 @@ class UkfDclNode(Node):
             # the motion of the ticks a restarted agent missed) is independent of everyone.
             for size, o in c.removed:
                 if o == self.id:
-                    self.row[self.id] = self.row[self.id] + (size - 1) * self.orphan_base
+                    _, own = fusion.ci_split(size, 1)
+                    self.row[self.id] = self.row[self.id] + (own - 1) * self.orphan_base
                     self.orphan, self.orphan_base = False, None
             return self._advance(c)
         zero = self._zero
         row, x = dict(self.row), self.x
         gone = {o: size for size, o in c.removed if o in row and o != self.id}
         if gone:
-            # Covariance intersection: each orphan takes weight 1/size (it scales its own block
-            # when it gets this commit), the rest of its former group (size - |gone|)/size.
-            size = max(gone.values())
-            f = size / (size - len(gone))
+            # Covariance intersection (fusion.ci_split): each orphan takes weight 1/size (it
+            # scales its own block when it gets this commit), the rest of its former group
+            # (size - |gone|)/size.
+            f, _ = fusion.ci_split(max(gone.values()), len(gone))
             row = {j: f * b for j, b in row.items() if j not in gone}
             self.stats["orphans_removed"] += len(gone)
         if c.gains:
