@@ -109,6 +109,12 @@ def load_scenario(name: str, seed: int | None = None, estimator: str | None = No
         sc = scenarios.load(name)
         changes = {"seed": seed} if seed is not None else {}
         if estimator is not None and estimator != sc.estimator.name:
+            from swarmloc.estimators import REGISTRY
+
+            models = sorted({a.model for a in sc.world.agents if a.localized})
+            if not set(models) <= set(REGISTRY[estimator].models):
+                raise Failure(f"--estimator {estimator} runs on models {list(REGISTRY[estimator].models)}; "
+                              f"{sc.name} has {models}", 2)
             # Another estimator's parameters are not this one's: start from its defaults.
             changes["estimator"] = {"name": estimator, "params": {}}
         return sc.with_overrides(**changes) if changes else sc

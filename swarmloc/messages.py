@@ -276,9 +276,9 @@ class DclLog:
 @message("fc.data")
 class CentreData:
     """UAS -> fusion centre, unicast, every tick: the UAS's sensor frame of tick k and, when
-    the UAS has no estimate from the centre for the previous tick (the centre is new, restarted
-    or was out of reach), its own estimate of tick k-1 (x, P), from which the centre takes the
-    UAS into its joint state."""
+    the UAS does not hold the centre's answer for the previous tick (the centre is new,
+    restarted or was out of reach), its own estimate of tick k after its own step (x, P), from
+    which the centre takes the UAS into its joint state."""
 
     k: Tick
     sensors: Annotated[Sensors, Nested(Sensors)]

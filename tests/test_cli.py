@@ -69,7 +69,7 @@ def test_agent_needs_a_start():
     (["agent", "--id", "1", "--start", "0,0", "--mode", "router"], "--mode"),
     (["agent", "--id", "1", "--start", "0,0", "--estimator", "kalman"], "--estimator"),
     (["agent", "--id", "1", "--start", "0,0", "--estimator", "ekf-ci"], "--estimator"),
-    (["run", "wang2019", "--estimator", "ekf-ci"], "ekf-ci runs on models"),
+    (["run", "wang2019", "--estimator", "ekf-ci"], "--estimator ekf-ci runs on models"),
     (["agent", "--id", "9", "--scenario", "wang2019"], "--id"),
 ])
 def test_a_bad_argument_is_one_line_naming_it(tmp_path, args, named):

@@ -93,7 +93,9 @@ class PerNodeReference:
             node.step(frames[a])
 
     def estimate(self, aid: int):
-        return self.nodes[aid].estimate()
+        from swarmloc.node import estimate_of
+
+        return estimate_of(self.nodes[aid])
 
 
 @dataclass
