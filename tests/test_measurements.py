@@ -277,3 +277,17 @@ def test_noise_and_layout_validation():
         StateLayout(3, slice(0, 2), attitude=slice(2, 3), attitude_kind="rotation-vector")
     with pytest.raises(ValueError):
         StateLayout.pose3d("quaternion")
+
+
+def test_range_second_order_terms_match_monte_carlo():
+    """Mean and variance of ||p_b - p_a|| for a Gaussian relative position with metres of
+    cross-track uncertainty at 20 m: the second-order terms against 400k samples."""
+    lay = StateLayout(3, slice(0, 3))
+    rng = np.random.default_rng(4)
+    xa, xb = np.zeros(3), np.array([20.0, 0.0, 0.0])
+    P_rel = np.diag([0.01, 9.0, 4.0])
+    d = np.linalg.norm(xb + rng.multivariate_normal(np.zeros(3), P_rel, 400_000), axis=1)
+    bias, var = ms.Range(lay, std=0.02).second_order(xa, xb, P_rel)
+    first_order_var = 0.01  # u^T P_rel u
+    assert bias == pytest.approx(d.mean() - 20.0, rel=0.1)  # ~0.33 m: the range reads long
+    assert first_order_var + var == pytest.approx(d.var(), rel=0.15)

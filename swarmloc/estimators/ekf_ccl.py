@@ -221,7 +221,17 @@ class JointEkf:
             hs.append(h)
             Hs.append(H)
         z = np.concatenate([r[3] for r in rows])
-        R = scipy.linalg.block_diag(*[r[2].R for r in rows])
+        Rs = [r[2].R for r in rows]
+        for j, (_, idx, model, _) in enumerate(rows):
+            if isinstance(model, Range):
+                # Second-order terms of the range (Range.second_order): without them a 2 cm
+                # range against metres of cross-track uncertainty makes the EKF overconfident.
+                a, b = (slice(i * D, i * D + 3) for i in idx)
+                P_rel = self.P[a, a] + self.P[b, b] - self.P[a, b] - self.P[b, a]
+                bias, var = model.second_order(X[a], X[b], P_rel)
+                hs[j] = hs[j] + bias
+                Rs[j] = Rs[j] + var
+        R = scipy.linalg.block_diag(*Rs)
         dx, self.P, nu, S = fusion.ekf_update(np.zeros(X.shape[0]), self.P, z, np.concatenate(hs), np.vstack(Hs), R)
         start = 0
         for (a, _, _, _), h in zip(rows, hs):
