@@ -384,9 +384,9 @@ def print_summary(out: Path, crashes: list[Crash]) -> None:
     algs = REGISTRY.order(m["estimators"])
     t = Table(title=f"Position error (m), {m['scenario']} seed {m['seed']}")
     t.add_column("agent")
-    for a in algs:
-        t.add_column(f"{a} mean", justify="right")
-        t.add_column(f"{a} final", justify="right")
+    for a in algs:  # two-line headers: a long estimator name does not widen two columns
+        t.add_column(f"{a}\nmean", justify="right")
+        t.add_column(f"{a}\nfinal", justify="right")
 
     def fmt(v):
         return "-" if v is None else f"{v:.3f}" if abs(v) < 1 else f"{v:.2f}"

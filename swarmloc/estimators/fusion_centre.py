@@ -18,12 +18,13 @@ One tick k, seen from a UAS:
    ticks it missed and applied its own GNSS, so the centre can take it in at tick k without
    its history, and without propagating it.
 2. The centre's `CentreEstimate(k, x, P)` for its current tick: adopted, the filter takes the
-   centre's marginal. An answer for an older tick (it came too late) is counted `stale` and
-   ignored: the UAS has moved on with its own filter and will send its x, P next tick. A NACK
-   of its CentreData is counted `centre_unreachable`; the UAS carries on on its own.
+   centre's marginal. The answer for the previous tick, come after this tick's frame, is
+   adopted late: taken as tick k-1's estimate, with this tick's own step done again on top
+   (`late_adopted`). Anything older is counted `stale` and ignored. A NACK of its CentreData is
+   counted `centre_unreachable`; the UAS carries on on its own.
 
 `stats`: `centre_ticks` (ticks whose estimate is the centre's), `own_ticks` (ticks on its own
-filter; a tick counts as its own until the centre's answer for it is adopted), `stale`,
+filter; a tick counts as its own until the centre's answer for it is adopted), `stale`, `late_adopted`,
 `centre_unreachable`, `state_sent` (CentreData that carried x, P), plus EkfNode's counters.
 
 The centre, for a tick k:
@@ -57,9 +58,9 @@ offline reference (CentralizedEkf) on the same frames; the centre lost, they are
 the centre back (a new process with an empty state), it takes every UAS in from its x, P.
 
 Lockstep: a timer fires at the start of the next tick, before the UAS step, so the answers of
-a tick run on the timer reach every UAS after it has moved on: stale, all of them. That happens
-while a UAS the centre expects is silent, i.e. for forget_after ticks after a UAS goes out of
-the centre's reach (tests/test_fusion_centre.py shows it).
+a tick run on the timer reach every UAS after it has moved on: each adopts it late (above).
+That happens while a UAS the centre expects is silent, i.e. for forget_after ticks after a UAS
+goes out of the centre's reach (tests/test_fusion_centre.py shows it).
 
 Determinism: the centre reads no clock; time reaches it only through its timer and the ticks of
 the data. Given the same deliveries in the same order, it sends the same messages.
@@ -205,7 +206,9 @@ class CentreClient(EkfNode):
         super().__init__(aid, x0, P0, imu, clock)
         self.centre = centre
         self.adopted: int | None = None  # tick of the centre's answer the filter holds, None: its own
-        self.stats.update({"centre_ticks": 0, "own_ticks": 0, "stale": 0, "centre_unreachable": 0, "state_sent": 0})
+        self.frame: Sensors | None = None  # this tick's frame: a late answer is adopted under it
+        self.stats.update({"centre_ticks": 0, "own_ticks": 0, "stale": 0, "centre_unreachable": 0, "state_sent": 0,
+                           "late_adopted": 0})
 
     @classmethod
     def from_scenario(cls, scenario, aid, settings=None) -> "CentreClient":
@@ -222,7 +225,7 @@ class CentreClient(EkfNode):
         out = super().step(sensors)
         if self.k != sensors.k:  # refused as stale by EkfNode: nothing to tell the centre
             return out
-        self.adopted = None
+        self.adopted, self.frame = None, sensors
         self.stats["own_ticks"] += 1
         if self.centre is None:
             return out
@@ -241,6 +244,8 @@ class CentreClient(EkfNode):
             x, P = check_state(msg.x, msg.P)
         except (RejectedInput, ValueError, TypeError) as exc:
             return _malformed(self, exc, "fc.estimate")
+        if msg.k == self.k - 1 and self.adopted is None and self.frame is not None and self.frame.k == self.k:
+            return self._adopt_late(msg.k, x, P)
         if msg.k < self.k or (msg.k == self.k and self.adopted == msg.k):
             self.stats["stale"] += 1
             return []
@@ -254,6 +259,22 @@ class CentreClient(EkfNode):
         self.adopted = msg.k
         self.stats["centre_ticks"] += 1
         self.stats["own_ticks"] -= 1
+        return []
+
+    def _adopt_late(self, k: int, x, P) -> list:
+        """The centre's answer for the previous tick, come after this tick's frame (in lockstep,
+        a tick the centre ran on its timer while it waited for a silent UAS): take it as tick
+        k-1's estimate and do this tick's own step again on top of it. The centre's solution one
+        tick late is better than none; the centre keeps our state, so the next datum need not
+        carry it, but sends it anyway (the centre ignores it: `state_ignored`)."""
+        try:
+            self.filter.set(x, P)
+        except (RejectedInput, ValueError, TypeError) as exc:
+            return _malformed(self, exc, "fc.estimate")
+        self.k = k
+        self._sync()
+        EkfNode.step(self, self.frame)
+        self.stats["late_adopted"] += 1
         return []
 
     def link_failed(self, dst: int, msg) -> list:
