@@ -160,16 +160,24 @@ def list_estimators():
 
 
 @app.command("scenarios")
-def list_scenarios():
-    """List the built-in scenarios."""
+def list_scenarios(name: Optional[str] = typer.Argument(None, help="print this built-in scenario's YAML, to copy and edit")):
+    """List the built-in scenarios, or print one as YAML (swarmloc scenarios goel10 > mine.yaml)."""
+    from importlib import resources
+
     from rich.table import Table
 
-    t = Table("name", "agents", "duration", "radio", "description")
+    if name is not None:
+        if name not in scenarios.builtin_names():
+            raise typer.BadParameter(f"no built-in scenario {name!r}; built-in: {', '.join(scenarios.builtin_names())}",
+                                     param_hint=["NAME"])
+        typer.echo(resources.files("swarmloc.scenarios").joinpath(f"{name}.yaml").read_text(), nl=False)
+        return
+    t = Table("name", "agents", "duration", "radio", "estimator", "description")
     for name in scenarios.builtin_names():
         sc = scenarios.load(name)
         t.add_row(name, str(len(sc.world.agents)), f"{sc.clock.duration:g} s @ {sc.clock.dt:g} s",
                   " ".join([sc.radio["model"], *([f"{sc.radio['range_m']:g} m"] if "range_m" in sc.radio else [])]),
-                  sc.description)
+                  sc.estimator.name, sc.description)
     _console().print(t)
 
 

@@ -166,3 +166,12 @@ def test_agent_logs_what_it_waits_for(tmp_path):
         p.wait(10)
     assert "INFO" in line and "peer mode" in line and listen in line and nowhere in line
     assert f"swarmloc/w{os.getpid()}/agent/1/sensors" in line and "radio/rx/all" in line
+
+
+def test_a_built_in_scenario_prints_as_yaml_that_loads_back(tmp_path):
+    p = swarmloc("scenarios", "goel-dist", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    (tmp_path / "mine.yaml").write_text(p.stdout)
+    from swarmloc import scenario as S
+
+    assert S.load(tmp_path / "mine.yaml") == S.load("goel-dist")
