@@ -166,6 +166,22 @@ class Timers:
         return min(self.due.values(), default=None)
 
 
+class Idle(Node):
+    """A ground station under an estimator that has no role for one: on the radio (its frames
+    would be relayed like anyone's), in nobody's estimate, doing nothing."""
+
+    def __init__(self, aid: int, algorithm: str):
+        super().__init__(aid, np.zeros(0), np.zeros((0, 0)), "ground-station")
+        self.algorithm = algorithm
+
+    def step(self, sensors: Sensors) -> list:
+        self.k = sensors.k
+        return []
+
+    def receive(self, src: int, msg: Any) -> list:
+        return self.drop("unexpected", type(msg).__name__)
+
+
 @dataclass(frozen=True)
 class RadioTx:
     """A frame as sent on the radio: sender, destination (None = broadcast), envelope seq, bytes."""

@@ -68,7 +68,9 @@ class RunRecord:
         self.truth: list[np.ndarray] = []
         self.sensors: list[dict[int, Sensors]] = []
         self.est: dict[str, dict[int, dict[int, Estimate]]] = {}
-        self.nis: dict[str, list[tuple[int, int, float, int]]] = {}  # alg -> (k, agent, nis, dof)
+        # alg -> {(k, agent): [(nis, dof), ...]}: an agent may publish its estimate of a tick more
+        # than once (a fusion-centre UAS: its own, then the centre's); the last one counts.
+        self._nis: dict[str, dict[tuple[int, int], tuple]] = {}
 
     @classmethod
     def for_scenario(cls, scenario) -> "RunRecord":
@@ -87,8 +89,13 @@ class RunRecord:
         if aid not in self.col:
             return  # a ground station: nothing to localize
         self.est.setdefault(algorithm, {}).setdefault(e.k, {})[aid] = e
-        for value, dof in e.nis:
-            self.nis.setdefault(algorithm, []).append((e.k, aid, float(value), int(dof)))
+        self._nis.setdefault(algorithm, {})[(e.k, aid)] = tuple((float(v), int(d)) for v, d in e.nis)
+
+    @property
+    def nis(self) -> dict[str, list[tuple[int, int, float, int]]]:
+        """alg -> [(k, agent, NIS, dof)] of every innovation, ticks in order."""
+        return {alg: [(k, a, v, d) for (k, a), rows in sorted(by.items()) for v, d in rows]
+                for alg, by in self._nis.items()}
 
     def trace(self, algorithm: str) -> Trace:
         T, N, d = len(self.k), len(self.ids), self.d
@@ -272,7 +279,7 @@ def write_run(out: Path, scenario, record: RunRecord, algorithms: list[str], ext
     (out / "estimates").mkdir(parents=True, exist_ok=True)
     (out / "scenario.yaml").write_text(scenario.to_yaml())
     np.savez(out / "truth.npz", ids=np.array(record.ids), k=np.array(record.k), t=np.array(record.t),
-             state=record.truth_array())
+             state=record.truth_array(), dims=record.dims)
     np.savez(out / "sensors.npz", **record.sensor_arrays())
     for alg in algorithms:
         record.trace(alg).save(out / "estimates" / f"{alg}.npz")

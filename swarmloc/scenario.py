@@ -253,8 +253,21 @@ class Scenario(_Strict):
         if isinstance(data, dict) and "estimators" in data:
             data = dict(data)
             old = data.pop("estimators")
-            if "references" not in data and isinstance(old, list):
-                data["references"] = [e for e in old if e != "ukf-dcl"]
+            if not isinstance(old, list):
+                raise ValueError(f"estimators (the old form of references) must be a list, got {old!r}")
+            data.setdefault("references", [e for e in old if e != "ukf-dcl"])
+        # No estimator named: the first in the registry that runs on the swarm's models (ukf-dcl
+        # for planar robots, ekf for UAS).
+        if isinstance(data, dict) and "estimator" not in data:
+            from swarmloc.estimators import REGISTRY
+            from swarmloc.models import MOTION_MODELS
+
+            agents = (data.get("world") or {}).get("agents") or []
+            models = {a.get("model", "planar-speed-heading") for a in agents if isinstance(a, dict)}
+            models = {m for m in models if m in MOTION_MODELS and MOTION_MODELS[m].state_dim > 0}
+            fits = [e.name for e in REGISTRY if e.runs_on_agents and models <= set(e.models)]
+            if fits:
+                data = {**data, "estimator": {"name": fits[0]}}
         return data
 
     @field_validator("references")
@@ -299,17 +312,26 @@ class Scenario(_Strict):
         g = self.sensors.gnss.agents
         if g is not None and set(g) - ids:
             raise ValueError(f"sensors.gnss.agents names unknown agents {sorted(set(g) - ids)}")
-        if any(a.model == "uas-ins" for a in self.world.agents):
+        uas = [a for a in self.world.agents if a.model == "uas-ins"]
+        if uas:
             for what, x in (("clock.dt * sensors.imu.rate_hz", self.clock.dt * self.sensors.imu.rate_hz),
                             ("sensors.epoch / clock.dt", self.sensors.epoch / self.clock.dt)):
                 if round(x) < 1 or abs(x - round(x)) > 1e-9 * max(1.0, x):
                     raise ValueError(f"{what} must be a whole number >= 1 for uas-ins agents, got {x:.6g}")
+            # What one sensor frame can carry (docs/wire.md): 4096 rows of an array, 64 list entries.
+            if self.clock.dt * self.sensors.imu.rate_hz > 4096:
+                raise ValueError("clock.dt * sensors.imu.rate_hz: a tick carries at most 4096 IMU samples")
+            if len(uas) > 65 and (self.sensors.relpos.enabled or self.sensors.range.all_pairs):
+                raise ValueError("sensors.relpos / sensors.range.all_pairs: a frame carries at most 64 relative "
+                                 f"measurements, and {len(uas)} UAS would measure {len(uas) - 1}")
         from swarmloc.estimators import REGISTRY
 
         info = REGISTRY[self.estimator.name]
         models = {a.model for a in self.world.agents if a.localized}
         if not models <= set(info.models):
             raise ValueError(f"estimator {info.name} runs on models {list(info.models)}, the swarm has {sorted(models)}")
+        if "ground-station" in info.models and not any(a.model == "ground-station" for a in self.world.agents):
+            raise ValueError(f"estimator {info.name} needs a ground-station agent (its fusion centre)")
         for r in self.references or ():
             if not models <= set(REGISTRY[r].models):
                 raise ValueError(f"reference {r} runs on models {list(REGISTRY[r].models)}, the swarm has {sorted(models)}")
@@ -329,10 +351,11 @@ class Scenario(_Strict):
         """The offline references of this run: those the scenario names, or every one that fits."""
         from swarmloc.estimators import REGISTRY
 
+        mine = self.estimator.name  # the agents' results are never replaced by an offline run
         if self.references is not None:
-            return list(self.references)
+            return [r for r in self.references if r != mine]
         models = {a.model for a in self.world.agents if a.localized}
-        return [r for r in REGISTRY.references() if models <= set(REGISTRY[r].models)]
+        return [r for r in REGISTRY.references() if models <= set(REGISTRY[r].models) and r != mine]
 
     def agent(self, aid: int) -> AgentSpec:
         return next(a for a in self.world.agents if a.id == aid)

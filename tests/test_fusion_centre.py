@@ -375,14 +375,14 @@ def uas_scenario(stations=(0,), **params):
 
 def test_roles_from_the_scenario():
     from swarmloc.estimators import REGISTRY, make_nodes
-    from swarmloc.estimators.fusion_centre import Bystander
+    from swarmloc.node import Idle
 
     nodes = make_nodes("ekf-centre", uas_scenario(wait=0.02, forget_after=5))
     assert isinstance(nodes[0], FusionCentre) and nodes[0].wait == 0.02 and nodes[0].forget_after == 5
     assert nodes[0].roster == {1, 2} and nodes[0].model.state_dim == 0
     assert all(isinstance(nodes[a], CentreClient) and nodes[a].centre == 0 for a in (1, 2))
     nodes = make_nodes("ekf-centre", uas_scenario((0, 9), centre=9))
-    assert isinstance(nodes[9], FusionCentre) and isinstance(nodes[0], Bystander) and nodes[1].centre == 9
+    assert isinstance(nodes[9], FusionCentre) and isinstance(nodes[0], Idle) and nodes[1].centre == 9
     for stations, params in (((), {}), ((0, 9), {}), ((0,), {"centre": 1})):
         with pytest.raises(ValueError, match="ground-station"):
             make_nodes("ekf-centre", uas_scenario(stations, **params))

@@ -72,3 +72,30 @@ def test_radio_parameters_are_validated_by_netsim():
     with pytest.raises(S.ScenarioError) as exc:
         Simulation(sc)
     assert "radio.path_loss_exponent" in str(exc.value) and "radio.rnage" in str(exc.value)
+
+
+def _uas(n=2, **extra):
+    return {"version": 1, "name": "u", "clock": {"dt": 0.1, "duration": 2},
+            "world": {"agents": [{"id": i + 1, "model": "uas-ins", "start": [10.0 * i, 0, 50]} for i in range(n)]}, **extra}
+
+
+def test_without_an_estimator_the_swarm_gets_one_that_fits_its_models():
+    assert S.parse(_uas()).estimator.name == "ekf"
+    assert S.load("wang2019").with_overrides(estimator={"name": "il", "params": {}}).reference_names == ["ukf-ccl"]
+
+
+@pytest.mark.parametrize("extra, named", [
+    ({"sensors": {"imu": {"rate_hz": 50000}}}, "4096 IMU samples"),
+    ({"sensors": {"imu": {"rate_hz": 15}}}, "clock.dt * sensors.imu.rate_hz"),
+    ({"estimator": {"name": "ekf-centre"}}, "needs a ground-station agent"),
+    ({"estimator": {"name": "ekf-ci", "params": {"criterion": "max"}}}, "criterion"),
+    ({"estimators": "il"}, "must be a list"),
+])
+def test_uas_scenario_errors_name_the_problem(extra, named):
+    with pytest.raises(S.ScenarioError, match=named.replace("*", r"\*")):
+        S.parse(_uas(**extra))
+
+
+def test_too_many_uas_for_one_frame_of_relative_measurements():
+    with pytest.raises(S.ScenarioError, match="at most 64 relative"):
+        S.parse(_uas(66, sensors={"relpos": {"enabled": True}}))

@@ -82,6 +82,6 @@ def test_real_time_timers_fire_in_wall_time_without_any_input():
         loop.join(5)
         session.close()
         daemon.close()
-    assert [f[0] for f in node.fired] == ["late", "again"]
+    assert [f[0] for f in node.fired][:2] == ["late", "again"]  # "replaced" may follow before the loop stops
     assert waited >= 0.4 / 2.0  # 0.4 s of modelled time at speed 2
     assert node.fired[0][2] >= 1.5 + 0.4  # the node is told the modelled time it fired at

@@ -8,6 +8,7 @@ import pytest
 
 from helpers import in_process
 from swarmloc import scenario as S
+from swarmloc.results import metrics
 
 pytestmark = pytest.mark.slow
 
@@ -39,6 +40,16 @@ def test_lockstep_over_zenoh_equals_in_process(cli, tmp_path, name, estimator):
     m = json.loads((out / "metrics.json").read_text())
     assert m["estimators"][estimator]["nees"]["n"] == 2 * 120
     assert m["models"] == {"1": "uas-ins", "2": "uas-ins"}
+    # NIS too: an agent that publishes its estimate of a tick twice (its own, then the
+    # centre's) counts that tick's innovations once, as in process.
+    assert m["estimators"][estimator]["nis"] == metrics(record, [estimator])["estimators"][estimator]["nis"]
+
+
+def test_a_ground_station_without_a_role_is_idle(tmp_path):
+    sc = S.load("goel2node").with_overrides(**{"clock.duration": 3.0, "estimator": {"name": "ekf", "params": {}}})
+    record, nodes, _ = in_process(sc, "ekf")
+    assert nodes[100].model.state_dim == 0 and record.ids == [1, 2]
+    assert not np.isnan(record.trace("ekf").mean).any()
 
 
 @pytest.mark.parametrize("mode", ["lockstep", "realtime"])

@@ -42,7 +42,7 @@ def test_commit_log_round_trips_with_versions():
 
 
 def _envelope(body, type_="beacon"):
-    return msgpack.packb({"v": 1, "type": type_, "src": 1, "seq": 1, "dst": None, "body": body}, use_bin_type=True)
+    return msgpack.packb({"v": wire.SCHEMA_VERSION, "type": type_, "src": 1, "seq": 1, "dst": None, "body": body}, use_bin_type=True)
 
 
 def _arr(a):
@@ -57,7 +57,7 @@ _COV = wire.Array(2).encode(np.eye(2))
     [
         (b"\x00\xff\x13garbage", "not MessagePack"),
         (msgpack.packb([1, 2, 3]), "not an envelope"),
-        (msgpack.packb({"v": 2, "type": "beacon", "src": 1, "seq": 1, "body": {}}), "schema version"),
+        (msgpack.packb({"v": 1, "type": "beacon", "src": 1, "seq": 1, "body": {}}), "schema version"),
         (_envelope({"cov": _COV, "k": 1, "version": {}, "position": _arr([0, 0])}, "no.such.type"), "unknown message type"),
         (_envelope({"cov": _COV, "k": "one", "version": {}, "position": _arr([0, 0])}), "body.k: expected int"),
         (_envelope({"cov": _COV, "k": True, "version": {}, "position": _arr([0, 0])}), "body.k: expected int"),

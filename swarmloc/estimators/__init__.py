@@ -41,9 +41,11 @@ class EstimatorInfo:
     """What the rest of swarmloc knows about one estimator.
 
     node: "module:callable", callable(scenario, aid, settings) -> Node, for an estimator the
-    agents run. reference: "module:callable", callable(scenario, ids, settings) -> an object
-    with step(frames) and estimate(aid), for one computed offline; None for a per-agent filter
-    (its nodes are then run offline one by one). settings: "module:PydanticModel" validating
+    agents run (a ground station gets an idle node unless `models` names "ground-station").
+    reference: whether it can be computed offline from a run's sensor stream; batch:
+    "module:callable", callable(scenario, ids, settings) -> an object with step(frames) and
+    estimate(aid), for a reference that is not a per-agent filter (a per-agent one is computed
+    by running its nodes offline one by one). settings_path: "module:PydanticModel" validating
     the scenario's `estimator.params`."""
 
     name: str
@@ -73,6 +75,10 @@ class EstimatorInfo:
     def make_node(self, scenario, aid: int, settings: BaseModel | None = None):
         if self.node is None:
             raise ValueError(f"{self.name} is a reference, not run by agents")
+        if not scenario.agent(aid).localized and scenario.agent(aid).model not in self.models:
+            from swarmloc.node import Idle
+
+            return Idle(aid, self.name)
         return _resolve(self.node)(scenario, aid, settings if settings is not None else self.settings())
 
     def make_reference(self, scenario, ids: list[int], settings: BaseModel | None = None):
@@ -162,7 +168,7 @@ for _info in (
                   UAS, "tab:red", node="swarmloc.estimators.ekf_ci:NaiveNode.from_scenario",
                   settings_path="swarmloc.estimators.ekf_ci:CiSettings", paper="baseline for Goel et al. 2016"),
     EstimatorInfo("ekf-centre", "EKF centre", "a fusion-centre process runs the joint EKF of the swarm over the radio; "
-                  "UAS fall back to their own EKF when it is out of reach", UAS, "tab:purple",
+                  "UAS fall back to their own EKF when it is out of reach", UAS + ("ground-station",), "tab:purple",
                   node="swarmloc.estimators.fusion_centre:make_node",
                   settings_path="swarmloc.estimators.fusion_centre:CentreSettings", paper="Goel et al. 2016, section 3"),
     EstimatorInfo("ekf-ccl", "EKF-CCL", "centralized EKF over the joint state of the swarm, offline", UAS, "tab:olive",

@@ -85,7 +85,7 @@ from swarmloc import ins
 from swarmloc.estimators.ekf import EkfNode, RejectedInput, checked, checked_covariance, checked_std, imu_spec
 from swarmloc.estimators.ekf_ccl import UAS, JointEkf
 from swarmloc.messages import CentreData, CentreEstimate, Sensors
-from swarmloc.node import Node, Send, Timer
+from swarmloc.node import Idle, Node, Send, Timer
 
 GROUND_STATION = "ground-station"
 MAX_ABS = 1e9
@@ -131,7 +131,7 @@ def centre_id(scenario, settings: CentreSettings) -> int:
 
 def make_node(scenario, aid: int, settings: CentreSettings | None = None) -> Node:
     """The ekf-centre node of agent aid: the FusionCentre on the centre's ground station, a
-    CentreClient on every uas-ins agent, an idle Bystander on any other ground station."""
+    CentreClient on every uas-ins agent, an idle node (swarmloc.node.Idle) on any other ground station."""
     settings = settings if settings is not None else CentreSettings()
     centre = centre_id(scenario, settings)
     model = scenario.agent(aid).model
@@ -141,7 +141,7 @@ def make_node(scenario, aid: int, settings: CentreSettings | None = None) -> Nod
     if model == UAS.name:
         return CentreClient.from_scenario(scenario, aid, settings)
     if model == GROUND_STATION:
-        return Bystander(aid, np.zeros(0), np.zeros((0, 0)), GROUND_STATION)
+        return Idle(aid, CentreClient.algorithm)
     raise ValueError(f"ekf-centre runs on {UAS.name} platforms; agent {aid} is {model}")
 
 
@@ -281,19 +281,6 @@ class CentreClient(EkfNode):
         if isinstance(msg, CentreData):
             self.stats["centre_unreachable"] += 1
         return []
-
-
-class Bystander(Node):
-    """A ground station that is not the fusion centre: on the radio, not in the estimator."""
-
-    algorithm = "ekf-centre"
-
-    def step(self, sensors) -> list:
-        self.k = sensors.k
-        return []
-
-    def receive(self, src, msg) -> list:
-        return self.drop("unexpected", type(msg).__name__)
 
 
 class FusionCentre(Node):
@@ -438,5 +425,5 @@ class FusionCentre(Node):
         return joined
 
 
-__all__ = ["CentreSettings", "CentreClient", "FusionCentre", "Bystander", "make_node", "centre_id", "check_state",
+__all__ = ["CentreSettings", "CentreClient", "FusionCentre", "make_node", "centre_id", "check_state",
            "check_frame", "MAX_ABS"]
