@@ -38,6 +38,9 @@ def lockstep_compare(sc, check_connected=False):
                 worst["row"] = max(worst["row"], np.abs(block - ccl.P[ccl.block(a), ccl.block(b)]).max())
         chains.append(sum(len(f.ranges) for f in frames.values()))
         assert worst["mean"] < TOL and worst["row"] < TOL, f"tick {k}: diverged {worst}"
+        for a, node in nodes.items():  # the measurer's NIS of each range, as the centralized filter's
+            assert [d for _, d in node.nis] == [d for _, d in ccl.nis[a]], f"tick {k}: agent {a}'s NIS"
+            assert np.allclose([v for v, _ in node.nis], [v for v, _ in ccl.nis[a]], rtol=0, atol=TOL)
 
     InProcessRunner(sim, nodes).run(on_tick=on_tick)
     return nodes, worst, chains

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 
-from swarmloc import kalman
+from swarmloc import fusion, kalman
 from swarmloc.messages import Sensors
 from swarmloc.models import MOTION_MODELS, Range
 from swarmloc.node import Estimate, keyed_ranges, odometry_of
@@ -29,6 +29,7 @@ class CentralizedUKF:
         self.ut = kalman.UnscentedTransform.for_pair(self.model.state_dim, spread)
         self.meas = Range(self.model)
         self.k = -1
+        self.nis: dict[int, list[tuple[float, int]]] = {}
 
     @classmethod
     def from_scenario(cls, scenario, ids, settings=None):
@@ -49,8 +50,9 @@ class CentralizedUKF:
             Qs.append(Q)
         self.x, self.P = kalman.predict(self.x, self.P, scipy.linalg.block_diag(*Fs), scipy.linalg.block_diag(*Qs))
         self.k = frames[self.ids[0]].k
+        self.nis = {a: [] for a in self.ids}
         for m, n, z, R in self.measurements(frames):
-            self.update(m, n, z, R)
+            self.nis[m].append(self.update(m, n, z, R))
 
     @staticmethod
     def measurements(frames: dict[int, Sensors]):
@@ -58,12 +60,14 @@ class CentralizedUKF:
         for (m, n, _), r in sorted(keyed, key=lambda t: t[0]):
             yield m, n, np.array([r.range]), np.array([[r.std**2]])
 
-    def update(self, m: int, n: int, z: np.ndarray, R: np.ndarray) -> None:
+    def update(self, m: int, n: int, z: np.ndarray, R: np.ndarray) -> tuple[float, int]:
         S = kalman.permuted_cholesky(self.P, [self.index[m], self.index[n]], self.d)
         idx = np.r_[self.block(m), self.block(n)]
         z_bar, Pzz, Y = self.ut.measurement_moments(self.x, S, lambda X: self.meas.h_joint(X[..., idx]))
         self.x, self.P, _ = kalman.update(self.x, self.P, S @ Y, Pzz + R, z - z_bar)
+        return fusion.nis(z - z_bar, Pzz + R), len(z)
 
     def estimate(self, a: int) -> Estimate:
+        """Platform a's marginal, with the NIS of the measurements a took this tick."""
         b = self.block(a)
-        return Estimate(self.k, self.x[b].copy(), self.P[b, b].copy())
+        return Estimate(self.k, self.x[b].copy(), self.P[b, b].copy(), tuple(self.nis.get(a, ())))

@@ -104,6 +104,7 @@ class UkfDclNode(Node):
         self.held: list[tuple[int, object]] = []  # early frames: (src, msg)
         self.seen: set[tuple] = set()  # fingerprints of chain frames handled, this tick and later
         self.reruns: dict[Key, int] = {}  # version reruns per chain key (this tick)
+        self.nis: list[tuple[float, int]] = []  # (NIS, dof) of the measurements this node committed this tick
         self.stats = {"chains_committed": 0, "measurements_used": 0, "measurements_dropped": 0,
                       "outsider_commits": 0, "commits_replayed": 0, "orphaned": 0, "orphans_removed": 0,
                       "lost": 0, "refound": 0, "refused_holding": 0, "holds_expired": 0}
@@ -141,6 +142,7 @@ class UkfDclNode(Node):
         if gap is not None:
             self.row[self.id] = self.row[self.id] + gap
         self.k, self.epoch = sensors.k, 0
+        self.nis = []
         self._settle_report()
         self.pending.clear()
         self.known_pending.clear()
@@ -455,6 +457,7 @@ class UkfDclNode(Node):
             return DclCommit(finished=True, **nothing), out
         participants = sorted(i for i, v in token.versions.items()
                               if v == self.version and i in token.gains and i not in token.orphans)
+        self.nis.append((fusion.nis(token.nu, token.Pz), len(token.nu)))  # the measurer's, once per measurement
         return DclCommit(seq=self.version.get(self.id, 0) + 1, version=dict(self.version), gains=token.gains,
                          participants=participants, removed=[], finished=True, **common), out
 
