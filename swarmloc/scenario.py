@@ -256,8 +256,8 @@ class Scenario(_Strict):
             if not isinstance(old, list):
                 raise ValueError(f"estimators (the old form of references) must be a list, got {old!r}")
             data.setdefault("references", [e for e in old if e != "ukf-dcl"])
-        # No estimator named: the first in the registry that runs on the swarm's models (ukf-dcl
-        # for planar robots, ekf for UAS).
+        # No estimator named: ukf-dcl if it runs on the swarm's models, else the first in the
+        # registry that does (ekf for UAS).
         if isinstance(data, dict) and "estimator" not in data:
             from swarmloc.estimators import REGISTRY
             from swarmloc.models import MOTION_MODELS
@@ -266,6 +266,7 @@ class Scenario(_Strict):
             models = {a.get("model", "planar-speed-heading") for a in agents if isinstance(a, dict)}
             models = {m for m in models if m in MOTION_MODELS and MOTION_MODELS[m].state_dim > 0}
             fits = [e.name for e in REGISTRY if e.runs_on_agents and models <= set(e.models)]
+            fits.sort(key=lambda name: name != EstimatorChoice.model_fields["name"].default)
             if fits:
                 data = {**data, "estimator": {"name": fits[0]}}
         return data

@@ -99,3 +99,9 @@ def test_uas_scenario_errors_name_the_problem(extra, named):
 def test_too_many_uas_for_one_frame_of_relative_measurements():
     with pytest.raises(S.ScenarioError, match="at most 64 relative"):
         S.parse(_uas(66, sensors={"relpos": {"enabled": True}}))
+
+
+def test_a_planar_swarm_without_an_estimator_runs_ukf_dcl():
+    data = S.load("wang2019").model_dump()
+    del data["estimator"]
+    assert S.parse(data).estimator.name == "ukf-dcl"
