@@ -69,9 +69,14 @@ def test_real_time_timers_fire_in_wall_time_without_any_input():
     try:
         keys = wire.Keys("timers")
         clock, sensors = session.declare_publisher(keys.clock), session.declare_publisher(keys.sensors(1))
-        time.sleep(0.5)  # discovery
-        clock.put(wire.encode(Clock(3, 1.5, "realtime", 0.5, 2.0), 0, 1))
-        sensors.put(wire.encode(Sensors(3, 1.5, None, []), 0, 2))
+        deadline = time.monotonic() + 20.0
+        seq = 0
+        while daemon.clock_k != 3 and time.monotonic() < deadline:  # until the peers have found each other
+            seq += 1
+            clock.put(wire.encode(Clock(3, 1.5, "realtime", 0.5, 2.0), 0, seq))
+            time.sleep(0.05)
+        assert daemon.clock_k == 3, "the daemon never heard the clock"
+        sensors.put(wire.encode(Sensors(3, 1.5, None, []), 0, seq + 1))
         started = time.monotonic()
         deadline = started + 10.0
         while len(node.fired) < 2 and time.monotonic() < deadline:
