@@ -241,6 +241,30 @@ def replay_centralized(sc, frames: list[dict], times: dict[str, list[float]]) ->
         times[f"update {kind}"].append(last["update"])
 
 
+def update_side_by_side(duration: float, repeat: int) -> None:
+    """The centralized EKF's relative-position update, information form (JointEkf.linear_relpos,
+    the default) against 8N-row batches, alternating on the same recorded frames."""
+    from swarmloc.estimators.ekf_ccl import JointEkf
+
+    print("| swarm | relative positions | epoch tick: median (p90) ms | update at epoch: median ms | normal tick: median ms |")
+    print("|---|---|---|---|---|")
+    for name in ("goel10", "goel20"):
+        sc = scenario(name, duration)
+        frames = record_frames(sc)
+        times = {True: defaultdict(list), False: defaultdict(list)}
+        for _ in range(repeat):
+            for linear in (False, True):
+                JointEkf.linear_relpos = linear
+                replay_centralized(sc, frames, times[linear])
+        JointEkf.linear_relpos = True
+        for linear in (False, True):
+            t = times[linear]
+            ep, up, nm = stats(t["step epoch"]), stats(t["update epoch"]), stats(t["step normal"])
+            print(f"| {name} | {'one information-form update' if linear else '8N-row batches'} | "
+                  f"{ep['median_us'] / 1e3:.1f} ({ep['p90_us'] / 1e3:.1f}) | {up['median_us'] / 1e3:.1f} | "
+                  f"{nm['median_us'] / 1e3:.1f} |")
+
+
 # ---------------------------------------------------------------------- main
 
 
@@ -252,7 +276,11 @@ def main() -> None:
     p.add_argument("--dist-duration", type=float, default=None, help="goel-dist flight (default 60, quick 20)")
     p.add_argument("--no-goel20", action="store_true", help="skip the 20-UAS runs")
     p.add_argument("--json", metavar="FILE", help="also write every figure as JSON")
+    p.add_argument("--update-only", action="store_true",
+                   help="only the centralized EKF's relative-position update, both ways side by side")
     a = p.parse_args()
+    if a.update_only:
+        return update_side_by_side(a.duration or 20.0, a.repeat or 3)
     repeat = a.repeat or (1 if a.quick else 3)
     duration = a.duration or (10.0 if a.quick else 20.0)
     dist_duration = a.dist_duration or (20.0 if a.quick else 60.0)

@@ -417,3 +417,35 @@ def test_a_tick_whose_arithmetic_fails_changes_nothing(monkeypatch):
     swarm.tick()
     assert all(c.adopted == swarm.k for c in swarm.clients.values())
     assert centre.stats["left"] == 2 and centre.stats["joined"] == 4
+
+
+def test_relative_positions_in_information_form_are_the_stacked_update():
+    """JointEkf's one information-form update of a tick's relative positions equals the stacked
+    EKF update of the same rows (one batch), state and covariance, to rounding."""
+    import copy
+
+    from netsim.sim import Simulation
+    from swarmloc import scenario as S
+    from swarmloc.estimators.ekf_ccl import CentralizedEkf
+
+    sc = S.load("goel10").with_overrides(**{"clock.duration": 2.0, "sensors.gnss.agents": [2, 4, 6, 8, 10]})
+    sim = Simulation(sc)
+    frames = [sim.tick()[2] for _ in range(sim.steps + 1)]
+    ccl = CentralizedEkf.from_scenario(sc, sc.localized_ids)
+    for fr in frames[:10]:
+        ccl.step(fr)
+    joint = ccl.joint
+    joint.predict({a: frames[10][a].imu for a in joint.ids})
+    batches = joint.batches(frames[10])
+    assert [len(b) for b in batches] == [5, 90]  # 5 fixes, then every relative position at once
+    fast, stacked = copy.deepcopy(joint), copy.deepcopy(joint)
+    fast.nis = {a: [] for a in joint.ids}
+    stacked.nis = {a: [] for a in joint.ids}
+    for f in (fast, stacked):
+        f._update(batches[0])
+    fast._update_linear(batches[1])
+    stacked._update(batches[1])
+    x = lambda f: np.concatenate([f.estimate(a)[0] for a in f.ids])
+    assert np.abs(x(fast) - x(stacked)).max() < 1e-12
+    assert np.abs(fast.P - stacked.P).max() < 1e-12 * np.abs(stacked.P).max()
+    assert np.allclose([v for a in fast.ids for v, _ in fast.nis[a]], [v for a in fast.ids for v, _ in stacked.nis[a]])
