@@ -17,7 +17,6 @@ from typing import Callable
 
 import numpy as np
 import scipy.linalg
-import scipy.optimize
 
 from swarmloc import kalman
 
@@ -89,6 +88,8 @@ def _best_omega(cost: Callable[[float], float]) -> float:
     never evaluates the bounds, and a dominated input puts the minimum exactly at 0 or 1,
     so the end points are compared too.
     """
+    import scipy.optimize  # here: an agent that never intersects covariances need not carry it (~40 MB)
+
     res = scipy.optimize.minimize_scalar(cost, bounds=(0.0, 1.0), method="bounded", options={"xatol": 1e-10})
     candidates = [(cost(0.0), 0.0), (cost(1.0), 1.0), (float(res.fun), float(res.x))]
     # min over (cost, omega): on a tie the smaller omega wins, deterministically.

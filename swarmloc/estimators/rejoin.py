@@ -20,8 +20,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.special import chdtri
 
 
 @dataclass(frozen=True)
@@ -83,6 +81,11 @@ class Multilateration:
             u = p - offset
             u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-9)
             return np.sqrt(np.array([c.var for c in cs]) + np.einsum("ni,nij,nj->n", u, np.array(extra), u))
+
+        # Imported here, not at the top: only a lost node gets this far, and scipy.optimize with
+        # scipy.special adds about 40 MB to every agent process that loads them.
+        from scipy.optimize import least_squares
+        from scipy.special import chdtri
 
         def fit(start):
             s = sigmas(start)
