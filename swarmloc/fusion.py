@@ -16,11 +16,17 @@ from __future__ import annotations
 from typing import Callable
 
 import numpy as np
-import scipy.linalg
 
 from swarmloc import kalman
 
 CRITERIA = ("trace", "det")
+
+
+def _pd_inverse(P: np.ndarray) -> np.ndarray:
+    """P^-1 of a positive definite P (LinAlgError otherwise). numpy, not scipy.linalg: agents
+    load only what they use, and scipy.linalg is 27 MB of it."""
+    np.linalg.cholesky(P)  # the check: raises unless positive definite
+    return np.linalg.inv(P)
 
 
 def _sym(P: np.ndarray) -> np.ndarray:
@@ -30,8 +36,8 @@ def _sym(P: np.ndarray) -> np.ndarray:
 
 def nis(nu: np.ndarray, S: np.ndarray) -> float:
     """Normalised innovation squared nu^T S^-1 nu (chi-square with len(nu) dof if consistent)."""
-    c = scipy.linalg.cho_factor(S)
-    return float(nu @ scipy.linalg.cho_solve(c, nu))
+    y = np.linalg.solve(np.linalg.cholesky(S), nu)  # raises LinAlgError unless S is positive definite
+    return float(y @ y)
 
 
 def nees(error: np.ndarray, P: np.ndarray) -> float:
@@ -118,8 +124,7 @@ def covariance_intersection(
     and w = 0 returns (xb, Pb), as copies, exactly.
     """
     xa, Pa, xb, Pb = (np.asarray(a, dtype=float) for a in (xa, Pa, xb, Pb))
-    Ia = scipy.linalg.cho_solve(scipy.linalg.cho_factor(Pa), np.eye(Pa.shape[0]))
-    Ib = scipy.linalg.cho_solve(scipy.linalg.cho_factor(Pb), np.eye(Pb.shape[0]))
+    Ia, Ib = _pd_inverse(Pa), _pd_inverse(Pb)
     ya, yb = Ia @ xa, Ib @ xb
 
     def fuse(w: float) -> tuple[np.ndarray, np.ndarray]:
@@ -127,9 +132,8 @@ def covariance_intersection(
             return xa.copy(), Pa.copy()
         if w == 0.0:
             return xb.copy(), Pb.copy()
-        c = scipy.linalg.cho_factor(_sym(w * Ia + (1.0 - w) * Ib))
-        P = _sym(scipy.linalg.cho_solve(c, np.eye(Pa.shape[0])))
-        return scipy.linalg.cho_solve(c, w * ya + (1.0 - w) * yb), P
+        P = _sym(_pd_inverse(_sym(w * Ia + (1.0 - w) * Ib)))
+        return P @ (w * ya + (1.0 - w) * yb), P
 
     if omega is None:
         f = _objective(criterion)

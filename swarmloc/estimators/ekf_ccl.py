@@ -61,7 +61,6 @@ from __future__ import annotations
 from typing import Iterable, Mapping
 
 import numpy as np
-import scipy.linalg
 
 from swarmloc import fusion, ins
 from swarmloc.estimators.ekf import imu_spec
@@ -294,7 +293,11 @@ class JointEkf:
                 bias, var = model.second_order(X[a], X[b], P_rel)
                 hs[j] = hs[j] + bias
                 Rs[j] = Rs[j] + var
-        R = scipy.linalg.block_diag(*Rs)
+        R = np.zeros((sum(len(r) for r in Rs),) * 2)
+        at = 0
+        for r in Rs:  # block-diagonal, without scipy.linalg in a fusion-centre process
+            R[at:at + len(r), at:at + len(r)] = r
+            at += len(r)
         dx, self.P, nu, S = fusion.ekf_update(np.zeros(X.shape[0]), self.P, z, np.concatenate(hs), np.vstack(Hs), R)
         start = 0
         for (a, _, _, _), h in zip(rows, hs):
