@@ -11,6 +11,9 @@ from typing import ClassVar
 
 import numpy as np
 
+from swarmloc import ins
+from swarmloc.measurements import StateLayout
+
 
 @dataclass(frozen=True)
 class Odometry:
@@ -50,8 +53,6 @@ class MotionModel:
     @property
     def layout(self):
         """Where measurement models find position (and attitude, clock) in the state."""
-        from swarmloc.measurements import StateLayout
-
         return StateLayout.planar()
 
 
@@ -94,21 +95,15 @@ class UasIns(MotionModel):
 
     @staticmethod
     def pack(state) -> np.ndarray:
-        from swarmloc import ins
-
         return np.concatenate([state.position, state.velocity, ins.rotvec_from_quat(state.quaternion),
                                state.gyro_bias, state.accel_bias, [state.clock_bias]])
 
     @staticmethod
     def unpack(x: np.ndarray, clock_drift: float = 0.0):
-        from swarmloc import ins
-
         x = np.asarray(x, float)
         return ins.InsState(x[0:3], x[3:6], ins.quat_from_rotvec(x[6:9]), x[9:12], x[12:15], float(x[15]), clock_drift)
 
     def error(self, x_true: np.ndarray, x_est: np.ndarray) -> np.ndarray:
-        from swarmloc import ins
-
         return ins.state_error(self.unpack(x_true), self.unpack(x_est))
 
     def predict(self, x, u):
@@ -116,8 +111,6 @@ class UasIns(MotionModel):
 
     @property
     def layout(self):
-        from swarmloc.measurements import StateLayout
-
         return StateLayout.uas16("rotation-vector")
 
 

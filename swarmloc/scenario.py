@@ -247,7 +247,7 @@ class Scenario(_Strict):
 
     @model_validator(mode="before")
     @classmethod
-    def _old_estimators(cls, data):
+    def _migrate_and_default_estimator(cls, data):
         # Before `estimator` and `references`, one list named the estimators to report; the
         # agents always ran ukf-dcl, the others were offline references.
         if isinstance(data, dict) and "estimators" in data:
