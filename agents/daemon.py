@@ -59,6 +59,9 @@ class AgentDaemon:
         self.rejected: Counter[str] = Counter()
         self.hop_latency: list[float] = []  # s from the sender's publish to our loop picking the frame up
         self.handled = 0
+        self.ticks = 0  # sensor frames handled
+        self.ticks_skipped = 0  # ticks whose sensor frame never reached the node
+        self.sensor_lag: list[float] = []  # real time: s from a sensor frame's arrival to the node stepping on it
         self._last_published = None
         self._last_checkpoint = -1e9
         self._stop = threading.Event()
@@ -81,7 +84,9 @@ class AgentDaemon:
             return lambda s: put((kind, wire.bounded(s.payload), s.attachment))
 
         self._subs = [
-            self.session.declare_subscriber(self.keys.sensors(aid), frame("sensors")),
+            # Sensor frames carry no attachment: the slot holds their arrival, for the lag stats.
+            self.session.declare_subscriber(self.keys.sensors(aid),
+                                            lambda s: put(("sensors", wire.bounded(s.payload), time.monotonic()))),
             self.session.declare_subscriber(self.keys.radio_rx(aid), frame("rx")),
             self.session.declare_subscriber(self.keys.clock, frame("clock")),
         ]
@@ -110,7 +115,12 @@ class AgentDaemon:
     def stats(self) -> dict:
         lat = sorted(self.hop_latency)
         pct = lambda q: lat[min(len(lat) - 1, int(q * len(lat)))] * 1e6 if lat else None
-        return {"hop_us_median": pct(0.5), "hop_us_p99": pct(0.99), "hops": len(lat),"id": self.node.id, "algorithm": self.node.algorithm, "k": self.node.k, "handled": self.handled,
+        lag = sorted(self.sensor_lag)
+        return {"hop_us_median": pct(0.5), "hop_us_p99": pct(0.99), "hops": len(lat), "id": self.node.id,
+                "algorithm": self.node.algorithm, "k": self.node.k, "handled": self.handled, "ticks": self.ticks,
+                "ticks_skipped": self.ticks_skipped,
+                "sensor_lag_ms_median": lag[len(lag) // 2] * 1e3 if lag else None,
+                "sensor_lag_ms_max": lag[-1] * 1e3 if lag else None,
                 "sent": self.sent, "consumed": self.consumed, "rejected": dict(self.rejected),
                 "node_drops": dict(self.node.drops), **getattr(self.node, "stats", {})}
 
@@ -208,7 +218,14 @@ class AgentDaemon:
             if self.node.synchronous:
                 self.model_t = env.body.t
                 fired = self._fire_timers(self.model_t)
+            elif attachment is not None and len(self.sensor_lag) < 100_000:
+                self.sensor_lag.append(time.monotonic() - attachment)
+            before = self.node.k
             sends = fired + self.node.step(env.body)
+            if self.node.k == env.body.k:
+                self.ticks += 1
+                if before >= 0:
+                    self.ticks_skipped += max(0, env.body.k - before - 1)
             self._checkpoint()
             return sends
         if not self.cfg.direct:

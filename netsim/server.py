@@ -428,6 +428,7 @@ class NetsimServer:
 
     def _realtime_tick(self) -> None:
         k = self._start_tick()
+        self._check_lag(k)
         t_next = (k + 1) * self.sc.clock.dt  # the last tick lasts dt too, so its frames land
         while True:
             now = self._now()
@@ -440,6 +441,18 @@ class NetsimServer:
             self._new_event = False
             self._pump(lambda: self._new_event, max(0.0, (wake - now) / self.sc.clock.speed))
         self._end_tick(k)
+
+    def _check_lag(self, k: int) -> None:
+        """Real time waits for nobody, but an agent whose last `done` is more than tick_timeout
+        of modelled ticks behind is not keeping up: marked unresponsive until it catches up."""
+        behind = max(1, int(round(self.cfg.tick_timeout * self.sc.clock.speed / self.sc.clock.dt)))
+        killed = self.sim.faults.killed()
+        for a in self.alive:
+            d = self.done.get(a)
+            last = d.k if d is not None else self.joined_at[a] - 1
+            if a not in self.unresponsive and a not in killed and k - last > behind:
+                log.error("tick %d: agent %s has handled nothing since tick %d: marked unresponsive", k, a, last)
+                self.unresponsive.add(a)
 
     # ---------------------------------------------------------------- the end
 

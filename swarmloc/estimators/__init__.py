@@ -154,7 +154,7 @@ for _info in (
                   paper="Wang et al. 2019 (baseline)"),
     EstimatorInfo("ukf-dcl", "UKF-DCL", "distributed UKF over serial chains of the robots a measurement correlates",
                   PLANAR, "tab:blue", node="swarmloc.estimators.ukf_dcl:UkfDclNode.from_scenario",
-                  paper="Wang et al. 2019"),
+                  settings_path="swarmloc.estimators.ukf_dcl:DclSettings", paper="Wang et al. 2019"),
     EstimatorInfo("ukf-ccl", "UKF-CCL", "centralized UKF over the joint state of the swarm", PLANAR, "tab:orange",
                   reference=True, batch="swarmloc.estimators.ukf_ccl:CentralizedUKF.from_scenario",
                   paper="Wang et al. 2019 (gold standard)"),

@@ -44,6 +44,7 @@ import logging
 from collections import deque
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 from swarmloc import fusion, kalman
 from swarmloc.messages import (CHAIN_OK, CHAIN_REFUSED, CHAIN_UNREACHABLE, CHAIN_VERSION, Beacon, DclCommit, DclLog,
@@ -63,17 +64,37 @@ GIVE_UP_TICKS = 40  # a commit whose history never arrives makes the node an orp
 HOLD_TICKS = 10  # real time: longest wait for the commit of a chain we reported to
 
 
+class DclSettings(BaseModel):
+    """UKF-DCL settings (scenario `estimator.params`)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    max_chain: int | None = Field(
+        None, ge=2, description="the most platforms one chain visits, the measuring and the measured one included "
+        "(bounded chains). The platforms a chain does not visit apply its commit as outsiders, and chains whose "
+        "platforms are busy run at the same time instead of one after the other. null: every chain visits the "
+        "whole connected swarm, one chain at a time, and the filter equals the centralized UKF")
+
+
 class UkfDclNode(Node):
     algorithm = "ukf-dcl"
 
     @classmethod
     def from_scenario(cls, scenario, aid, settings=None):
         est = scenario.estimation
-        return cls(aid, *scenario.prior(aid), scenario.agent(aid).model, spread=est.spread, rejoin_std=est.rejoin_std)
+        settings = settings if isinstance(settings, DclSettings) else DclSettings.model_validate(settings or {})
+        return cls(aid, *scenario.prior(aid), scenario.agent(aid).model, spread=est.spread, rejoin_std=est.rejoin_std,
+                   max_chain=settings.max_chain)
 
     def __init__(self, aid, x0, P0, model="planar-speed-heading", spread: float | None = None, max_retries: int = 3,
-                 rejoin_std: float | None = 15.0):
+                 rejoin_std: float | None = 15.0, max_chain: int | None = None):
         super().__init__(aid, x0, P0, model)
+        # Bounded chains ("local" mode): a chain stops exploring after max_chain platforms and
+        # chains run concurrently; a platform gives its version to one chain at a time (the
+        # `reported` lock) and is an outsider to every other. `epoch` then numbers the
+        # measurer's own chains instead of the commits of the tick.
+        self.max_chain = max_chain
+        self.bounded = max_chain is not None
         self.rejoin_std = rejoin_std
         self.lost = False  # position too uncertain to linearize a range at: finding itself (rejoin.py)
         self.finder = Multilateration(self.model.position_dim)
@@ -104,6 +125,7 @@ class UkfDclNode(Node):
         self.held: list[tuple[int, object]] = []  # early frames: (src, msg)
         self.seen: set[tuple] = set()  # fingerprints of chain frames handled, this tick and later
         self.reruns: dict[Key, int] = {}  # version reruns per chain key (this tick)
+        self.deferred: set[Key] = set()  # bounded chains: rerun when our version next changes
         self.nis: list[tuple[float, int]] = []  # (NIS, dof) of the measurements this node committed this tick
         self.stats = {"chains_committed": 0, "measurements_used": 0, "measurements_dropped": 0,
                       "outsider_commits": 0, "commits_replayed": 0, "orphaned": 0, "orphans_removed": 0,
@@ -148,6 +170,7 @@ class UkfDclNode(Node):
         self.known_pending.clear()
         self.retries.clear()
         self.reruns.clear()
+        self.deferred.clear()
         self.asked.clear()
         self.seen = {f for f in self.seen if f[2] >= self.k}
         # F = I: prediction leaves every cross-covariance as it is, so it commutes with commits
@@ -190,14 +213,17 @@ class UkfDclNode(Node):
 
     def _start_next(self) -> list[Send]:
         """Start our smallest pending chain if it is the smallest this node knows of."""
-        if not self.pending:
+        ready = set(self.pending) - self.deferred
+        if not ready:
             return []
-        key = min(self.pending)
-        if key != self._min_pending():
+        key = min(ready)
+        if not self.bounded and key != self._min_pending():
             return []
         if self._holding():
             return []  # our own chain would be computed at a version we already reported elsewhere
         z, R = self.pending[key]
+        if self.bounded:
+            self.epoch += 1
         self.reported = (self.k, self.epoch, key, None)
         msg = DclStart(self.k, self.epoch, list(key), z, R, self.x.copy(), dict(self.row), dict(self.version),
                        self.orphan, [list(k) for k in sorted(self.pending)])
@@ -223,7 +249,7 @@ class UkfDclNode(Node):
                 if self._valid_commit(c):
                     self._deliver(c)
                     out += self._resolve_report(c.key[0], commit=c)
-            return out
+            return out + (self._start_next() if self.bounded else [])
         if not isinstance(msg, (DclStart, DclToken, DclCommit)):
             return self.drop("unexpected-type", type(msg).__name__)
         # A radio may deliver a frame twice; a second copy of a chain step would run the chain
@@ -238,6 +264,16 @@ class UkfDclNode(Node):
         return self._chain_frame(src, msg)
 
     def _chain_frame(self, src, msg) -> list[Send]:
+        if self.bounded:
+            # No tick-wide order of chains: any frame of this tick is current.
+            if msg.k < self.k:
+                return self._late_commit(src, msg) if isinstance(msg, DclCommit) else self.drop("stale", f"k={msg.k}")
+            if msg.k > self.k:
+                if len(self.held) >= 256:
+                    return self.drop("held-overflow")
+                self.held.append((src, msg))
+                return []
+            return self._dispatch(src, msg)
         if msg.k < self.k or (msg.k == self.k and msg.epoch < self.epoch):
             if isinstance(msg, DclCommit):
                 return self._late_commit(src, msg)
@@ -247,6 +283,9 @@ class UkfDclNode(Node):
                 return self.drop("held-overflow")
             self.held.append((src, msg))
             return []
+        return self._dispatch(src, msg)
+
+    def _dispatch(self, src, msg) -> list[Send]:
         try:
             if isinstance(msg, DclStart):
                 return self._on_start(src, msg)
@@ -260,7 +299,7 @@ class UkfDclNode(Node):
     def _release_held(self) -> list[Send]:
         ready, later, out = [], [], []
         for s, m in self.held:
-            if m.k == self.k and m.epoch == self.epoch:
+            if m.k == self.k and (self.bounded or m.epoch == self.epoch):
                 ready.append((s, m))
             elif m.k > self.k or (m.k == self.k and m.epoch > self.epoch):
                 later.append((s, m))
@@ -275,6 +314,8 @@ class UkfDclNode(Node):
 
     def _preempted(self, key: Key) -> bool:
         """True if we know a smaller pending key: this chain cannot be the one to run now."""
+        if self.bounded:
+            return False  # chains run concurrently; the `reported` lock keeps versions apart
         self.known_pending.add(key)
         return min(set(self.pending) | self.known_pending) < key
 
@@ -291,8 +332,9 @@ class UkfDclNode(Node):
         return dict(self.version), ([self.id] if self.orphan else [])
 
     def _holding(self) -> bool:
-        """Reported to a chain of an earlier tick whose commit may still come (real time)."""
-        return self.reported is not None and self.reported[0] < self.k
+        """Reported to a chain whose commit may still come: of an earlier tick (real time), or
+        any other chain at all with bounded chains, which run concurrently."""
+        return self.reported is not None and (self.bounded or self.reported[0] < self.k)
 
     def _settle_report(self) -> None:
         """A new tick. In lockstep every chain of the last tick is over: committed or dead. With
@@ -323,10 +365,10 @@ class UkfDclNode(Node):
         return self._start_next() + self._release_held()
 
     def _token(self, key, status, order, parent, versions, orphans, pending, L=None, Y=None, Pz=None, nu=None,
-               gains=None):
+               gains=None, epoch=None):
         d, dz = self.model.state_dim, self.meas.dim
         return DclToken(
-            self.k, self.epoch, list(key), status,
+            self.k, self.epoch if epoch is None else epoch, list(key), status,
             np.eye(2 * d) if L is None else L, np.zeros((2 * d, dz)) if Y is None else Y,
             np.eye(dz) if Pz is None else Pz, np.zeros(dz) if nu is None else nu,
             order, parent, gains or {}, versions, orphans, [list(k) for k in sorted(pending)],
@@ -346,11 +388,15 @@ class UkfDclNode(Node):
             return self.drop("preempted", str(key))
 
         pending = {tuple(k) for k in msg.pending} | set(self.pending)
+        token = lambda status, *args, **kw: self._token(key, status, *args, epoch=msg.epoch, **kw)
         if self._holding():
-            # Our version is promised to an earlier chain: this measurement is lost.
+            # Our version is promised to another chain (an earlier tick's, or with bounded
+            # chains one running now). The measured pair must take part in its own update, or
+            # it would not commute with that chain's: this run of the measurement is refused
+            # (with bounded chains m runs it again).
             self.stats["refused_holding"] += 1
-            return self._forward(self._token(key, CHAIN_REFUSED, [m, n], {n: m}, {m: msg.version},
-                                             [m] if msg.orphan else [], pending))
+            return self._forward(token(CHAIN_REFUSED, [m, n], {n: m}, {m: msg.version}, [m] if msg.orphan else [],
+                                       pending))
         version, orphans = self._report(key, msg.version)
         head = ([m, n], {n: m}, {m: msg.version, n: version}, ([m] if msg.orphan else []) + orphans, pending)
         if self.lost:
@@ -358,15 +404,15 @@ class UkfDclNode(Node):
             # runs empty so the keys it preempted get their turn.
             p = self.model.position_dim
             self.finder.add(self.k, self.model.position(msg.x_m), msg.row_m[m][:p, :p], float(msg.z[0]), float(msg.R[0, 0]))
-            return self._forward(self._token(key, CHAIN_UNREACHABLE, *head))
+            return self._forward(token(CHAIN_UNREACHABLE, *head))
         if head[3]:
-            return self._forward(self._token(key, CHAIN_REFUSED, *head))  # m removes the orphans first
+            return self._forward(token(CHAIN_REFUSED, *head))  # m removes the orphans first
         if msg.version != self.version:
             out = []
             if self._behind(msg.version) and m not in self.asked:
                 self.asked.add(m)
                 out.append(Send(DclSync(self.k, dict(self.version)), m))
-            return out + self._forward(self._token(key, CHAIN_VERSION, *head))
+            return out + self._forward(token(CHAIN_VERSION, *head))
         P_nm = self._block(m)
         P_sub = np.block([[msg.row_m[m], P_nm.T], [P_nm, self.row[self.id]]])
         try:
@@ -375,7 +421,7 @@ class UkfDclNode(Node):
             # Cannot happen with equal versions; if it does, refuse rather than compute garbage,
             # and let the chain run empty so the keys it preempted get their turn.
             self.drop("not-positive-definite", str(key))
-            return self._forward(self._token(key, CHAIN_REFUSED, *head))
+            return self._forward(token(CHAIN_REFUSED, *head))
         z_bar, Pzz, Y = self.ut.measurement_moments(np.concatenate([msg.x_m, self.x]), L, self.meas.h_joint)
         Pz = Pzz + msg.R
         # Every node correlated with m or n gets a gain, from m's and n's copies of its
@@ -385,7 +431,7 @@ class UkfDclNode(Node):
         P_t_mn = np.vstack([np.hstack([msg.row_m.get(j, zero).T, self.row.get(j, zero).T]) for j in touched])
         K = kalman.gain(kalman.solve_lower(L, P_t_mn.T).T @ Y, Pz)
         gains = {j: K[i * d:(i + 1) * d] for i, j in enumerate(touched)}
-        return self._forward(self._token(key, CHAIN_OK, *head, L, Y, Pz, msg.z - z_bar, gains))
+        return self._forward(token(CHAIN_OK, *head, L, Y, Pz, msg.z - z_bar, gains))
 
     def _on_token(self, src: int, msg: DclToken) -> list[Send]:
         key = tuple(msg.key)
@@ -415,7 +461,9 @@ class UkfDclNode(Node):
         """Depth-first step: nearest unvisited neighbour, else back to our parent, else finish."""
         visited = set(token.order)
         here = self.model.position(self.x)
-        candidates = [(float(np.linalg.norm(p - here)), j) for j, p in self.neighbours.items() if j not in visited]
+        full = self.bounded and len(visited) >= self.max_chain
+        candidates = [] if full else [(float(np.linalg.norm(p - here)), j) for j, p in self.neighbours.items()
+                                      if j not in visited]
         if candidates:
             return [Send(token, min(candidates)[1])]
         if self.id in token.parent:
@@ -447,12 +495,20 @@ class UkfDclNode(Node):
                              participants=[], removed=[[size, o] for o in removed], finished=False, **common), []
         out = []
         if token.status == CHAIN_VERSION:
-            if self._behind(token.versions.get(n, {})) and n not in self.asked:
+            behind = self._behind(token.versions.get(n, {}))
+            if behind and n not in self.asked:
                 self.asked.add(n)
                 out.append(Send(DclSync(self.k, dict(self.version)), n))
             if rerun and self.reruns.get(key, 0) < VERSION_RETRIES:
                 self.reruns[key] = self.reruns.get(key, 0) + 1
+                if behind and self.bounded:
+                    # Run it again once n's commits are in, not at once into the same mismatch.
+                    self.deferred.add(key)
                 return DclCommit(finished=False, **nothing), out
+        busy = token.status == CHAIN_REFUSED and n not in token.versions and not token.orphans
+        if busy and self.bounded and rerun and self.reruns.get(key, 0) < VERSION_RETRIES:
+            self.reruns[key] = self.reruns.get(key, 0) + 1  # n was in another chain: try again
+            return DclCommit(finished=False, **nothing), out
         if token.status != CHAIN_OK:
             return DclCommit(finished=True, **nothing), out
         participants = sorted(i for i, v in token.versions.items()
@@ -478,14 +534,14 @@ class UkfDclNode(Node):
             # dst (and the tree below it) misses this commit; they ask for it (dcl.sync) when a
             # beacon shows them a newer version.
             return self.drop("commit-undelivered", f"to {dst}")
-        if msg.epoch != self.epoch:
+        if not self.bounded and msg.epoch != self.epoch:
             return self.drop("undeliverable", type(msg).__name__)
         if isinstance(msg, DclStart):
             # The measured platform is out of reach: the measurement is lost, but the chain
             # still has to run (empty) so the keys it preempted get their turn.
             version, orphans = dict(self.version), [self.id] if self.orphan else []
             return self._forward(self._token(msg.key, CHAIN_UNREACHABLE, [self.id], {}, {self.id: version}, orphans,
-                                             set(self.pending)))
+                                             set(self.pending), epoch=msg.epoch))
         if msg.parent.get(self.id) == dst:
             return self.drop("chain-broken", f"parent {dst} unreachable")
         return self._forward(msg)
@@ -499,9 +555,13 @@ class UkfDclNode(Node):
             return []
         if msg.parent.get(self.id, key[0]) != src or (self.id != key[0] and self.id not in msg.parent):
             return self.drop("misrouted", f"commit {key}")
-        self.epoch += 1
-        if not self._holding():
-            self.reported = None
+        if self.bounded:
+            if self.reported is not None and self.reported[:3] == (msg.k, msg.epoch, key):
+                self.reported = None  # our lock was this chain's
+        else:
+            self.epoch += 1
+            if not self._holding():
+                self.reported = None
         if key in self.pending and msg.finished:
             del self.pending[key]
             self.stats["measurements_used" if msg.gains else "measurements_dropped"] += 1
@@ -661,6 +721,7 @@ class UkfDclNode(Node):
             self.version[a] = max(self.version.get(a, 0), s)
         self.version[c.key[0]] = max(self.version.get(c.key[0], 0), c.seq)
         self.log.append(c)
+        self.deferred.clear()
 
     def _make_orphan(self, why: str) -> None:
         """Our cross-covariances can no longer be kept equal to the others' copies: drop them.
