@@ -61,6 +61,8 @@ VERSION_RETRIES = 2  # chain reruns when m and n are at different versions
 LOG_COMMITS = 2048  # applied commits kept to replay to nodes that missed them
 LOG_BATCH = 16  # commits per dcl.log frame
 GIVE_UP_TICKS = 40  # a commit whose history never arrives makes the node an orphan after this
+BUSY_RETRIES = 4  # bounded chains: reruns of a measurement whose measured platform was in another chain
+MAX_QUEUED = 64  # bounded chains: starts waiting at a busy measured platform
 HOLD_TICKS = 10  # real time: longest wait for the commit of a chain we reported to
 
 
@@ -126,6 +128,8 @@ class UkfDclNode(Node):
         self.seen: set[tuple] = set()  # fingerprints of chain frames handled, this tick and later
         self.reruns: dict[Key, int] = {}  # version reruns per chain key (this tick)
         self.deferred: set[Key] = set()  # bounded chains: rerun when our version next changes
+        self.busy_retries: dict[Key, int] = {}  # bounded chains: reruns after n was busy (this tick)
+        self.queued: list[tuple[int, DclStart]] = []  # bounded chains: starts waiting for our lock
         self.nis: list[tuple[float, int]] = []  # (NIS, dof) of the measurements this node committed this tick
         self.stats = {"chains_committed": 0, "measurements_used": 0, "measurements_dropped": 0,
                       "outsider_commits": 0, "commits_replayed": 0, "orphaned": 0, "orphans_removed": 0,
@@ -171,6 +175,8 @@ class UkfDclNode(Node):
         self.retries.clear()
         self.reruns.clear()
         self.deferred.clear()
+        self.queued.clear()
+        self.busy_retries.clear()
         self.asked.clear()
         self.seen = {f for f in self.seen if f[2] >= self.k}
         # F = I: prediction leaves every cross-covariance as it is, so it commutes with commits
@@ -362,7 +368,7 @@ class UkfDclNode(Node):
             return []
         self.reported = None
         self._apply_ready()
-        return self._start_next() + self._release_held()
+        return (self._run_queued() if self.bounded else []) + self._start_next() + self._release_held()
 
     def _token(self, key, status, order, parent, versions, orphans, pending, L=None, Y=None, Pz=None, nu=None,
                gains=None, epoch=None):
@@ -389,6 +395,12 @@ class UkfDclNode(Node):
 
         pending = {tuple(k) for k in msg.pending} | set(self.pending)
         token = lambda status, *args, **kw: self._token(key, status, *args, epoch=msg.epoch, **kw)
+        if self.bounded and self._holding() and key > self.reported[2] and len(self.queued) < MAX_QUEUED:
+            # Bounded chains: wait for the chain holding our lock. Only a larger key waits for a
+            # smaller one, so waits cannot form a cycle; tokens never wait, so the smallest
+            # chain of any wait always finishes.
+            self.queued.append((src, msg))
+            return []
         if self._holding():
             # Our version is promised to another chain (an earlier tick's, or with bounded
             # chains one running now). The measured pair must take part in its own update, or
@@ -506,8 +518,11 @@ class UkfDclNode(Node):
                     self.deferred.add(key)
                 return DclCommit(finished=False, **nothing), out
         busy = token.status == CHAIN_REFUSED and n not in token.versions and not token.orphans
-        if busy and self.bounded and rerun and self.reruns.get(key, 0) < VERSION_RETRIES:
-            self.reruns[key] = self.reruns.get(key, 0) + 1  # n was in another chain: try again
+        if busy and self.bounded and self.busy_retries.get(key, 0) < BUSY_RETRIES:
+            # n was in a chain with a larger key. Try again once our version moves: usually the
+            # commit of that chain, overheard, which also frees n.
+            self.busy_retries[key] = self.busy_retries.get(key, 0) + 1
+            self.deferred.add(key)
             return DclCommit(finished=False, **nothing), out
         if token.status != CHAIN_OK:
             return DclCommit(finished=True, **nothing), out
@@ -553,6 +568,8 @@ class UkfDclNode(Node):
         key = tuple(msg.key)
         if not self._valid_commit(msg):
             return []
+        if self.bounded and self.id != key[0] and self.id not in msg.parent and src == key[0]:
+            return self._overheard(msg)
         if msg.parent.get(self.id, key[0]) != src or (self.id != key[0] and self.id not in msg.parent):
             return self.drop("misrouted", f"commit {key}")
         if self.bounded:
@@ -567,11 +584,34 @@ class UkfDclNode(Node):
             self.stats["measurements_used" if msg.gains else "measurements_dropped"] += 1
         self.known_pending = {tuple(k) for k in msg.pending} - ({key} if msg.finished else set())
         out = [Send(msg, c) for c, p in sorted(msg.parent.items()) if p == self.id]
+        if self.bounded and self.id == key[0] and msg.seq:
+            # Bounded chains leave most of the swarm out; the measurer's radio neighbours
+            # overhear the commit and apply it now, so their versions stay close to ours and
+            # the next chains around here meet equal versions. (The tree still gets it by
+            # unicast, with retries; those copies of the broadcast are duplicates.)
+            out.append(Send(msg, None))
         self._deliver(msg)
         self._apply_ready()  # what arrived while we were busy (commits asked for by a version rerun)
+        if self.bounded:
+            out += self._run_queued()
         out += self._start_next()
         out += self._release_held()
         return out
+
+    def _run_queued(self) -> list[Send]:
+        """Bounded chains: our lock is free; serve the smallest start that waited for it."""
+        out: list[Send] = []
+        while self.queued and not self._holding():
+            self.queued.sort(key=lambda item: tuple(item[1].key))
+            src, msg = self.queued.pop(0)
+            if msg.k == self.k:
+                out += self._dispatch(src, msg)
+        return out
+
+    def _overheard(self, msg: DclCommit) -> list[Send]:
+        """A bounded chain's commit, broadcast by its measurer, at a node outside the chain."""
+        self._deliver(msg)
+        return self._start_next()
 
     def _late_commit(self, src: int, msg: DclCommit) -> list[Send]:
         """A commit of an earlier tick or epoch: we moved on before it reached us (real time,
