@@ -21,9 +21,15 @@ import typer
 from typer.core import TyperGroup
 
 from agents.control import DEFAULT_ENDPOINT, ControlClient, Failure, NotRunning
-from swarmloc import exit_on_sigterm
-from swarmloc import scenario as scenarios
 from swarmloc import wire
+
+
+def _scenarios():
+    """swarmloc.scenario, imported when a command needs it: an agent built from --spec never
+    parses a scenario, and pydantic would cost it about 17 MB."""
+    from swarmloc import scenario
+
+    return scenario
 
 
 class _Swarmloc(TyperGroup):
@@ -103,10 +109,10 @@ def _ids(text: str, what: str) -> list[int]:
         raise typer.BadParameter(f"expected comma-separated agent ids, got {text!r}", param_hint=[what]) from None
 
 
-def load_scenario(name: str, seed: int | None = None, estimator: str | None = None) -> scenarios.Scenario:
+def load_scenario(name: str, seed: int | None = None, estimator: str | None = None) -> "Scenario":
     """A scenario with the command line's overrides (--seed, --estimator)."""
     try:
-        sc = scenarios.load(name)
+        sc = _scenarios().load(name)
         changes = {"seed": seed} if seed is not None else {}
         if estimator is not None and estimator != sc.estimator.name:
             from swarmloc.estimators import REGISTRY
@@ -118,7 +124,7 @@ def load_scenario(name: str, seed: int | None = None, estimator: str | None = No
             # Another estimator's parameters are not this one's: start from its defaults.
             changes["estimator"] = {"name": estimator, "params": {}}
         return sc.with_overrides(**changes) if changes else sc
-    except scenarios.ScenarioError as exc:
+    except _scenarios().ScenarioError as exc:
         raise Failure(str(exc), 2) from None
 
 
@@ -167,14 +173,14 @@ def list_scenarios(name: Optional[str] = typer.Argument(None, help="print this b
     from rich.table import Table
 
     if name is not None:
-        if name not in scenarios.builtin_names():
-            raise typer.BadParameter(f"no built-in scenario {name!r}; built-in: {', '.join(scenarios.builtin_names())}",
+        if name not in _scenarios().builtin_names():
+            raise typer.BadParameter(f"no built-in scenario {name!r}; built-in: {', '.join(_scenarios().builtin_names())}",
                                      param_hint=["NAME"])
         typer.echo(resources.files("swarmloc.scenarios").joinpath(f"{name}.yaml").read_text(), nl=False)
         return
     t = Table("name", "agents", "duration", "radio", "estimator", "description")
-    for name in scenarios.builtin_names():
-        sc = scenarios.load(name)
+    for name in _scenarios().builtin_names():
+        sc = _scenarios().load(name)
         t.add_row(name, str(len(sc.world.agents)), f"{sc.clock.duration:g} s @ {sc.clock.dt:g} s",
                   " ".join([sc.radio["model"], *([f"{sc.radio['range_m']:g} m"] if "range_m" in sc.radio else [])]),
                   sc.estimator.name, sc.description)
@@ -227,6 +233,8 @@ def demo(out: Optional[Path] = OutOpt, seed: Optional[int] = SeedOpt, swarm: str
 def agent(
     id: int = typer.Option(..., "--id", help="this agent's id"),
     scenario: Optional[str] = typer.Option(None, "--scenario", help="take start point, model and filter settings from a scenario"),
+    spec: Optional[Path] = typer.Option(None, "--spec", help="build the node from a node spec file (JSON, what `run` "
+                                        "writes to logs/agent-ID.node.json): no scenario is parsed in this process"),
     start: Optional[str] = typer.Option(None, "--start", help="known start position, e.g. '0,0' (without --scenario)"),
     initial_std: float = typer.Option(0.1, "--initial-std", callback=_in_range(0, above=True),
                                       help="std of the start position (m), without --scenario"),
@@ -243,55 +251,45 @@ def agent(
     verbose: bool = typer.Option(False, "--verbose", "-v", help="log at INFO: what the agent waits for, what it does"),
 ):
     """Start one agent daemon (used by `run`; on a companion computer, run it by hand)."""
-    import numpy as np
-    import zenoh
-
-    from agents.control import zenoh_message
-    from agents.daemon import AgentConfig, AgentDaemon
-    from swarmloc.estimators import REGISTRY, make_nodes
+    from agents.daemon import AgentConfig, OpenError, load_node, serve
 
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING,
                         format=f"%(asctime)s agent-{id} %(levelname)s %(message)s")
-    if scenario:
+    if spec is not None:
+        if scenario or start or estimator:
+            raise Failure("--spec is the whole node: give it without --scenario, --start or --estimator", 2)
+        try:
+            node = load_node(spec, id)
+        except ValueError as exc:
+            raise Failure(str(exc), 2) from None
+    elif scenario:
+        from swarmloc.estimators import make_nodes
+
         sc = load_scenario(scenario, estimator=estimator)
         if id not in sc.agent_ids:
             raise typer.BadParameter(f"agent {id} is not in scenario {sc.name} (agents {sc.agent_ids})", param_hint=["--id"])
         node = make_nodes(sc.estimator.name, sc, [id])[id]
     elif start:
+        from swarmloc.estimators import REGISTRY, make_nodes
+
         estimator = estimator or "ukf-dcl"
         if "planar-speed-heading" not in REGISTRY[estimator].models:
             raise typer.BadParameter(f"{estimator} needs --scenario (--start is a planar robot's position)",
                                      param_hint=["--estimator"])
         # A one-platform scenario: the node is built exactly as from a scenario file.
-        sc = scenarios.parse({"version": scenarios.SCENARIO_VERSION, "name": f"agent-{id}",
+        sc = _scenarios().parse({"version": _scenarios().SCENARIO_VERSION, "name": f"agent-{id}",
                               "world": {"agents": [{"id": id, "start": _numbers(start, "--start", 2)}]},
                               "estimation": {"initial_std": initial_std, "initial_error": False},
                               "estimator": {"name": estimator}})
         node = make_nodes(estimator, sc, [id])[id]
     else:
-        raise Failure("give --scenario or --start", 2)
+        raise Failure("give --scenario, --start or --spec", 2)
     cfg = AgentConfig(swarm=swarm, connect=tuple(connect or ([] if mode == "peer" and listen else [DEFAULT_ENDPOINT])), listen=tuple(listen or ()), mode=mode,
                       direct=direct, state_file=state_file)
-    exit_on_sigterm()
-    daemon = AgentDaemon(node, cfg)
-    daemon.resume()
     try:
-        daemon.open()
-    except zenoh.ZError as exc:
-        raise Failure(f"agent {id}: cannot open a Zenoh session ({mode}, connect {', '.join(cfg.connect)}): "
-                      f"{zenoh_message(exc)}") from None
-    keys = wire.Keys(swarm)
-    radio = [keys.radio_rx(id), *([keys.radio_rx("all")] if direct else [])]
-    logging.getLogger("swarmloc.agent").info(
-        "agent %s up (%s mode, connect %s, listen %s, %s radio); waiting for sensor frames on %s, radio frames on %s, "
-        "clock on %s", id, mode, ", ".join(cfg.connect), ", ".join(cfg.listen) or "-", "direct" if direct else "netsim",
-        keys.sensors(id), ", ".join(radio), keys.clock)
-    try:
-        daemon.run()
-    except KeyboardInterrupt:
-        pass
-    finally:
-        daemon.close()
+        serve(node, cfg)
+    except OpenError as exc:
+        raise Failure(str(exc)) from None
 
 
 # ------------------------------------------------------------------------------------ control

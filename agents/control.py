@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 from pathlib import Path
 
 import typer
@@ -31,11 +30,6 @@ class Failure(typer.TyperException):
 class NotRunning(Failure):
     def __init__(self, swarm: str, endpoints: list[str]):
         super().__init__(f"no swarm '{swarm}' is running on {', '.join(endpoints)} (start one with `swarmloc run`)")
-
-
-def zenoh_message(exc: Exception) -> str:
-    """A Zenoh error without the Rust source location it ends with."""
-    return re.sub(r"\s+at \S+\.rs:\d+\.?\s*$", "", str(exc)).strip()
 
 
 # ------------------------------------------------------------------------------------ registry

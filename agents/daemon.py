@@ -13,9 +13,12 @@ Two radio modes:
 
 from __future__ import annotations
 
+import argparse
 import logging
 import os
 import queue
+import re
+import sys
 import threading
 import time
 from collections import Counter
@@ -25,9 +28,9 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from swarmloc import wire
+from swarmloc import exit_on_sigterm, wire
 from swarmloc.messages import Clock, Done, EstimateMsg, LinkNack, Reply, Sensors
-from swarmloc.node import Node, Outbox, Timers, estimate_of
+from swarmloc.node import Node, NodeSpec, Outbox, Timers, estimate_of
 
 log = logging.getLogger("swarmloc.agent")
 
@@ -327,3 +330,77 @@ class AgentDaemon:
         self._last_published = sig
         nis = np.array(e.nis, float).reshape(-1, 2) if e.nis else None
         self._pub_est.put(wire.encode(EstimateMsg(e.k, self.node.algorithm, e.mean, e.cov, nis), self.node.id, self.handled))
+
+
+# ---------------------------------------------------------------------------- entry points
+
+
+class OpenError(RuntimeError):
+    """The agent's Zenoh session could not be opened (the message says where to)."""
+
+
+def zenoh_message(exc: Exception) -> str:
+    """A Zenoh error without the Rust source location it ends with."""
+    return re.sub(r"\s+at \S+\.rs:\d+\.?\s*$", "", str(exc)).strip()
+
+
+def serve(node: Node, cfg: AgentConfig) -> None:
+    """An agent's whole life: checkpoint resumed, session opened, inputs handled until stopped.
+    `swarmloc agent` and the launcher's `python -m agents.daemon` both end here."""
+    exit_on_sigterm()
+    daemon = AgentDaemon(node, cfg)
+    daemon.resume()
+    try:
+        daemon.open()
+    except zenoh.ZError as exc:
+        raise OpenError(f"agent {node.id}: cannot open a Zenoh session ({cfg.mode}, connect {', '.join(cfg.connect)}): "
+                        f"{zenoh_message(exc)}") from None
+    keys = daemon.keys
+    radio = [keys.radio_rx(node.id), *([keys.radio_rx(BROADCAST)] if cfg.direct else [])]
+    log.info("agent %s up (%s mode, connect %s, listen %s, %s radio); waiting for sensor frames on %s, radio frames "
+             "on %s, clock on %s", node.id, cfg.mode, ", ".join(cfg.connect), ", ".join(cfg.listen) or "-",
+             "direct" if cfg.direct else "netsim", keys.sensors(node.id), ", ".join(radio), keys.clock)
+    try:
+        daemon.run()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        daemon.close()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """python -m agents.daemon: the agent process `swarmloc run` starts, its node given as a spec
+    file. No scenario and no CLI framework are imported (typer brings pydantic): an agent
+    process stays small. By hand, use `swarmloc agent` (docs/cli.md)."""
+    p = argparse.ArgumentParser(prog="python -m agents.daemon", description=main.__doc__.splitlines()[0])
+    p.add_argument("--id", type=int, required=True)
+    p.add_argument("--spec", type=Path, required=True, help="node spec (JSON), as `swarmloc run` writes it")
+    p.add_argument("--swarm", default="default")
+    p.add_argument("--connect", action="append", required=True, help="Zenoh endpoint (repeatable)")
+    p.add_argument("--state-file", type=Path)
+    p.add_argument("-v", "--verbose", action="store_true")
+    a = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO if a.verbose else logging.WARNING,
+                        format=f"%(asctime)s agent-{a.id} %(levelname)s %(message)s")
+    try:
+        node = load_node(a.spec, a.id)
+        serve(node, AgentConfig(swarm=a.swarm, connect=tuple(a.connect), state_file=a.state_file))
+    except (ValueError, OpenError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2 if isinstance(exc, ValueError) else 3
+    return 0
+
+
+def load_node(path: Path, aid: int) -> Node:
+    """Agent aid's node from its spec file (ValueError saying what is wrong otherwise)."""
+    try:
+        node = NodeSpec.loads(path.read_text()).build()
+    except (OSError, ValueError, TypeError, KeyError, AttributeError, ImportError) as exc:
+        raise ValueError(f"--spec {path}: {exc}") from None
+    if node.id != aid:
+        raise ValueError(f"--spec {path} is agent {node.id}'s node, not agent {aid}'s")
+    return node
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -285,8 +285,15 @@ def _start(procs: Swarm, sc: Scenario, out: Path, swarm: str, endpoint: str, plo
     _wait_listening(int(endpoint.rsplit(":", 1)[1]), net)
     if net.poll() is not None:
         raise procs.netsim_failed("netsim failed to start")
+    from swarmloc.estimators import REGISTRY
+
+    info = REGISTRY[sc.estimator.name]
+    settings = info.settings(sc.estimator.params)
     for a in sc.agent_ids:
-        procs.agent_args[a] = ["-m", "agents", "agent", "--id", str(a), "--scenario", str(scenario_file), "--swarm", swarm,
+        # The agent gets its node as plain values, not the scenario: it never parses one.
+        spec = out / "logs" / f"agent-{a}.node.json"
+        spec.write_text(info.node_spec(sc, a, settings).dumps())
+        procs.agent_args[a] = ["-m", "agents.daemon", "--id", str(a), "--spec", str(spec), "--swarm", swarm,
                                "--connect", endpoint, "--state-file", str(out / "logs" / f"agent-{a}.state.npy")]
         procs.start_agent(a)
 

@@ -7,6 +7,9 @@ reads a clock, so the same object runs in the in-process runner and in the agent
 
 from __future__ import annotations
 
+import dataclasses
+import importlib
+import json
 import logging
 from collections import Counter, OrderedDict
 from dataclasses import dataclass
@@ -19,6 +22,71 @@ from swarmloc.messages import LinkNack, Sensors
 from swarmloc.models import MOTION_MODELS, MotionModel, Odometry
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class NodeSpec:
+    """One agent's node as plain values: "module:Class" and its constructor's keyword arguments.
+
+    The launcher, which has the scenario, writes it (`REGISTRY[name].node_spec`); the agent
+    process builds its node from it (`swarmloc agent --spec FILE`) without parsing a scenario.
+    JSON, with numpy arrays as {"array": nested lists} and frozen dataclasses as
+    {"dataclass": "module:Class", "fields": {...}}; floats round-trip exactly (repr)."""
+
+    factory: str
+    kwargs: dict
+
+    @classmethod
+    def of(cls, node_cls: type, **kwargs) -> "NodeSpec":
+        return cls(f"{node_cls.__module__}:{node_cls.__qualname__}", kwargs)
+
+    def build(self) -> "Node":
+        return _resolve(self.factory)(**{k: _decode(v) for k, v in self.kwargs.items()})
+
+    def dumps(self) -> str:
+        return json.dumps({"factory": self.factory, "kwargs": {k: _encode(v) for k, v in self.kwargs.items()}})
+
+    @classmethod
+    def loads(cls, text: str) -> "NodeSpec":
+        d = json.loads(text)
+        if not isinstance(d, dict) or not isinstance(d.get("factory"), str) or not isinstance(d.get("kwargs"), dict):
+            raise ValueError("a node spec is {\"factory\": \"module:Class\", \"kwargs\": {...}}")
+        if not d["factory"].startswith("swarmloc."):
+            raise ValueError(f"node spec factory {d['factory']!r} is not a swarmloc class")
+        return cls(d["factory"], d["kwargs"])
+
+
+def _resolve(path: str):
+    module, _, attr = path.partition(":")
+    obj: Any = importlib.import_module(module)
+    for part in attr.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def _encode(v):
+    if isinstance(v, np.ndarray):
+        return {"array": v.tolist()}
+    if dataclasses.is_dataclass(v) and not isinstance(v, type):
+        return {"dataclass": f"{type(v).__module__}:{type(v).__qualname__}",
+                "fields": {f.name: _encode(getattr(v, f.name)) for f in dataclasses.fields(v)}}
+    if isinstance(v, (list, tuple)):
+        return [_encode(x) for x in v]
+    if isinstance(v, dict):
+        raise TypeError("node spec values are numbers, strings, lists, arrays or dataclasses, not maps")
+    return v
+
+
+def _decode(v):
+    if isinstance(v, dict):
+        if "array" in v:
+            return np.array(v["array"], dtype=float)
+        if not str(v.get("dataclass", "")).startswith("swarmloc."):
+            raise ValueError(f"node spec: unknown value {v!r}")
+        return _resolve(v["dataclass"])(**{k: _decode(x) for k, x in v["fields"].items()})
+    if isinstance(v, list):
+        return [_decode(x) for x in v]
+    return v
 
 
 @dataclass(frozen=True)
@@ -92,9 +160,10 @@ class Node:
         self.drops: Counter[str] = Counter()
 
     @classmethod
-    def from_scenario(cls, scenario, aid: int, settings=None) -> "Node":
+    def spec(cls, scenario, aid: int, settings=None) -> NodeSpec:
         """The node of agent `aid` as the scenario configures it (the estimator registry's factory)."""
-        return cls(aid, *scenario.prior(aid), scenario.agent(aid).model)
+        x0, P0 = scenario.prior(aid)
+        return NodeSpec.of(cls, aid=aid, x0=x0, P0=P0, model=scenario.agent(aid).model)
 
     def on_timer(self, tag: str, t: float) -> list:
         """A Timer this node set has expired; t is the current time (modelled or wall, s)."""

@@ -45,7 +45,7 @@ def test_unknown_scenario():
 
 def test_agent_needs_a_start():
     p = swarmloc("agent", "--id", "1")
-    assert p.returncode == 2 and "--scenario or --start" in p.stderr
+    assert p.returncode == 2 and "--scenario, --start or --spec" in p.stderr
 
 
 @pytest.mark.parametrize("args, named", [

@@ -15,7 +15,8 @@ from netsim import uas
 from swarmloc import fusion, ins, wire
 from swarmloc.estimators import REGISTRY
 from swarmloc.estimators.ekf import EkfNode, InsEkf
-from swarmloc.estimators.ekf_ci import CiNode, CiSettings, NaiveNode
+from swarmloc.estimators.ekf_ci import CiNode, NaiveNode
+from swarmloc.estimators.settings import CiSettings
 from swarmloc.messages import AlignMsg, Beacon, GnssMsg, ImuMsg, PseudorangesMsg, RelPosMsg, Sensors
 from swarmloc.models import UasIns
 
@@ -83,7 +84,7 @@ def run_pair(cls, flights, ticks: int, gnss: set, seed, settings=CiSettings(), r
     measures the other; broadcasts reach the other node after both have stepped (lockstep).
     Returns the position errors (ticks+1, 2) and position NEES (ticks+1, 2)."""
     rng = np.random.default_rng([*seed, 99])
-    kw = {} if cls is EkfNode else {"settings": settings}
+    kw = {} if cls is EkfNode else {"criterion": settings.criterion}
     nodes = [cls(i, np.zeros(16), np.eye(16), imu=SPEC, **kw) for i in range(2)]
     for i, n in enumerate(nodes):
         n.step(frame(0, align=flights[i].align(prior_cov())))
@@ -463,6 +464,6 @@ def test_registry_builds_the_nodes_from_a_scenario():
         np.testing.assert_allclose(node.x[:3], sc.prior(2)[0])
         assert node.filter.imu.gyro_arw == 2e-4
         if name != "ekf":
-            assert node.settings.criterion == "det"
+            assert node.criterion == "det"
     with pytest.raises(ValueError, match="criterion"):
         REGISTRY["ekf-ci"].settings({"criterion": "volume"})

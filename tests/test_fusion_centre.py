@@ -14,7 +14,8 @@ from netsim import uas
 from swarmloc import ins, wire
 from swarmloc.estimators.ekf import EkfNode, placeholder_prior
 from swarmloc.estimators.ekf_ccl import CentralizedEkf, JointEkf
-from swarmloc.estimators.fusion_centre import CentreClient, CentreSettings, FusionCentre
+from swarmloc.estimators.fusion_centre import CentreClient, FusionCentre
+from swarmloc.estimators.settings import CentreSettings
 from swarmloc.messages import AlignMsg, CentreData, CentreEstimate, GnssMsg, ImuMsg, RelPosMsg, Sensors
 from swarmloc.node import Send, Timer
 from swarmloc.models import MOTION_MODELS

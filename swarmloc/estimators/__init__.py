@@ -16,16 +16,8 @@ import importlib
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable
 
-from pydantic import BaseModel, ConfigDict, ValidationError
-
 PLANAR = ("planar-speed-heading",)
 UAS = ("uas-ins",)
-
-
-class NoSettings(BaseModel):
-    """An estimator without parameters of its own."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
 
 def _resolve(path: str) -> Any:
@@ -40,13 +32,14 @@ def _resolve(path: str) -> Any:
 class EstimatorInfo:
     """What the rest of swarmloc knows about one estimator.
 
-    node: "module:callable", callable(scenario, aid, settings) -> Node, for an estimator the
-    agents run (a ground station gets an idle node unless `models` names "ground-station").
+    node: "module:callable", callable(scenario, aid, settings) -> swarmloc.node.NodeSpec, for an
+    estimator the agents run (a ground station gets an idle node unless `models` names
+    "ground-station"). The agent process builds its node from that spec alone.
     reference: whether it can be computed offline from a run's sensor stream; batch:
     "module:callable", callable(scenario, ids, settings) -> an object with step(frames) and
     estimate(aid), for a reference that is not a per-agent filter (a per-agent one is computed
     by running its nodes offline one by one). settings_path: "module:PydanticModel" validating
-    the scenario's `estimator.params`."""
+    the scenario's `estimator.params` (in swarmloc.estimators.settings)."""
 
     name: str
     label: str
@@ -63,8 +56,12 @@ class EstimatorInfo:
     def runs_on_agents(self) -> bool:
         return self.node is not None
 
-    def settings(self, params: dict | None = None) -> BaseModel:
-        """The validated parameters (ValueError naming the bad field otherwise)."""
+    def settings(self, params: dict | None = None):
+        """The validated parameters, a pydantic model (ValueError naming the bad field otherwise)."""
+        from pydantic import ValidationError
+
+        from swarmloc.estimators.settings import NoSettings
+
         model = _resolve(self.settings_path) if self.settings_path else NoSettings
         try:
             return model.model_validate(params or {})
@@ -72,16 +69,20 @@ class EstimatorInfo:
             bad = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
             raise ValueError(f"estimator {self.name} params: {bad}") from None
 
-    def make_node(self, scenario, aid: int, settings: BaseModel | None = None):
+    def node_spec(self, scenario, aid: int, settings=None):
+        """Agent aid's node as plain values (swarmloc.node.NodeSpec): what its process builds."""
+        from swarmloc.node import Idle, NodeSpec
+
         if self.node is None:
             raise ValueError(f"{self.name} is a reference, not run by agents")
         if not scenario.agent(aid).localized and scenario.agent(aid).model not in self.models:
-            from swarmloc.node import Idle
-
-            return Idle(aid, self.name)
+            return NodeSpec.of(Idle, aid=aid, algorithm=self.name)
         return _resolve(self.node)(scenario, aid, settings if settings is not None else self.settings())
 
-    def make_reference(self, scenario, ids: list[int], settings: BaseModel | None = None):
+    def make_node(self, scenario, aid: int, settings=None):
+        return self.node_spec(scenario, aid, settings).build()
+
+    def make_reference(self, scenario, ids: list[int], settings=None):
         settings = settings if settings is not None else self.settings()
         if self.batch is not None:
             return _resolve(self.batch)(scenario, ids, settings)
@@ -150,27 +151,27 @@ class Registry:
 REGISTRY = Registry()
 for _info in (
     EstimatorInfo("il", "IL", "dead reckoning on odometry alone, each robot by itself", PLANAR, "tab:gray",
-                  node="swarmloc.estimators.il:IndependentNode.from_scenario", reference=True,
+                  node="swarmloc.estimators.il:IndependentNode.spec", reference=True,
                   paper="Wang et al. 2019 (baseline)"),
     EstimatorInfo("ukf-dcl", "UKF-DCL", "distributed UKF over serial chains of the robots a measurement correlates",
-                  PLANAR, "tab:blue", node="swarmloc.estimators.ukf_dcl:UkfDclNode.from_scenario",
-                  settings_path="swarmloc.estimators.ukf_dcl:DclSettings", paper="Wang et al. 2019"),
+                  PLANAR, "tab:blue", node="swarmloc.estimators.ukf_dcl:UkfDclNode.spec",
+                  settings_path="swarmloc.estimators.settings:DclSettings", paper="Wang et al. 2019"),
     EstimatorInfo("ukf-ccl", "UKF-CCL", "centralized UKF over the joint state of the swarm", PLANAR, "tab:orange",
                   reference=True, batch="swarmloc.estimators.ukf_ccl:CentralizedUKF.from_scenario",
                   paper="Wang et al. 2019 (gold standard)"),
     EstimatorInfo("ekf", "EKF alone", "each UAS's own INS/GNSS EKF, nothing shared", UAS, "tab:gray",
-                  node="swarmloc.estimators.ekf:EkfNode.from_scenario", reference=True,
+                  node="swarmloc.estimators.ekf:EkfNode.spec", reference=True,
                   paper="Goel et al. 2016 (no sharing)"),
     EstimatorInfo("ekf-ci", "EKF-CI", "each UAS's EKF fuses its neighbours' estimates through relative measurements "
-                  "with covariance intersection", UAS, "tab:green", node="swarmloc.estimators.ekf_ci:CiNode.from_scenario",
-                  settings_path="swarmloc.estimators.ekf_ci:CiSettings", paper="Goel et al. 2016, section 4"),
+                  "with covariance intersection", UAS, "tab:green", node="swarmloc.estimators.ekf_ci:CiNode.spec",
+                  settings_path="swarmloc.estimators.settings:CiSettings", paper="Goel et al. 2016, section 4"),
     EstimatorInfo("ekf-naive", "EKF naive", "as EKF-CI, but neighbours' estimates are fused as if independent",
-                  UAS, "tab:red", node="swarmloc.estimators.ekf_ci:NaiveNode.from_scenario",
-                  settings_path="swarmloc.estimators.ekf_ci:CiSettings", paper="baseline for Goel et al. 2016"),
+                  UAS, "tab:red", node="swarmloc.estimators.ekf_ci:NaiveNode.spec",
+                  settings_path="swarmloc.estimators.settings:CiSettings", paper="baseline for Goel et al. 2016"),
     EstimatorInfo("ekf-centre", "EKF centre", "a fusion-centre process runs the joint EKF of the swarm over the radio; "
                   "UAS fall back to their own EKF when it is out of reach", UAS + ("ground-station",), "tab:purple",
-                  node="swarmloc.estimators.fusion_centre:make_node",
-                  settings_path="swarmloc.estimators.fusion_centre:CentreSettings", paper="Goel et al. 2016, section 3"),
+                  node="swarmloc.estimators.fusion_centre:node_spec",
+                  settings_path="swarmloc.estimators.settings:CentreSettings", paper="Goel et al. 2016, section 3"),
     EstimatorInfo("ekf-ccl", "EKF-CCL", "centralized EKF over the joint state of the swarm, offline", UAS, "tab:olive",
                   reference=True, batch="swarmloc.estimators.ekf_ccl:CentralizedEkf.from_scenario",
                   paper="Goel et al. 2016, section 3"),
@@ -185,4 +186,4 @@ def make_nodes(name: str, scenario, ids: Iterable[int] | None = None, params: di
     return {a: info.make_node(scenario, a, settings) for a in (ids if ids is not None else scenario.agent_ids)}
 
 
-__all__ = ["REGISTRY", "EstimatorInfo", "Registry", "make_nodes", "PerNodeReference", "NoSettings"]
+__all__ = ["REGISTRY", "EstimatorInfo", "Registry", "make_nodes", "PerNodeReference"]

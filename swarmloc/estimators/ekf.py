@@ -25,7 +25,7 @@ import numpy as np
 from swarmloc import fusion, ins
 from swarmloc.measurements import PositionFix, Pseudorange, skew
 from swarmloc.models import MOTION_MODELS, UasIns
-from swarmloc.node import Node, Send
+from swarmloc.node import Node, NodeSpec, Send
 
 log = logging.getLogger(__name__)
 
@@ -346,12 +346,13 @@ class EkfNode(Node):
         self._sync()
 
     @classmethod
-    def from_scenario(cls, scenario, aid, settings=None):
+    def spec(cls, scenario, aid, settings=None) -> NodeSpec:
         agent = scenario.agent(aid)
         if agent.model != MODEL.name:
             raise ValueError(f"{cls.algorithm} runs on {MODEL.name} platforms; agent {aid} is {agent.model}")
-        spec = imu_spec(scenario)
-        return cls(aid, *placeholder_prior(*scenario.prior(aid), spec), imu=spec)
+        imu = imu_spec(scenario)
+        x0, P0 = placeholder_prior(*scenario.prior(aid), imu)
+        return NodeSpec.of(cls, aid=aid, x0=x0, P0=P0, imu=imu)
 
     def _sync(self) -> None:
         self.x = self.filter.vector()

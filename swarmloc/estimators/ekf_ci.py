@@ -41,40 +41,28 @@ deterministic given the order of its deliveries.
 
 from __future__ import annotations
 
-from typing import Literal
-
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
 from swarmloc import fusion, ins
 from swarmloc.estimators.ekf import DIM, LAYOUT, EkfNode, RejectedInput, checked, checked_covariance, checked_std
 from swarmloc.measurements import RelativePosition, StateLayout
 from swarmloc.messages import Beacon
-from swarmloc.node import Send
+from swarmloc.node import NodeSpec, Send
 
 POSITION_ONLY = StateLayout(3, slice(0, 3))  # what a beacon carries of the neighbour's state
 H_POSITION = LAYOUT.position_matrix()  # eq. 20
 MAX_HELD = 256  # early beacons kept; a neighbour far ahead cannot fill our memory
 
 
-class CiSettings(BaseModel):
-    """EKF-CI settings (scenario `estimator.params`)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    criterion: Literal["trace", "det"] = Field(
-        "trace", description="what the CI weight omega minimises in the fused covariance: its trace (the paper's "
-        "eq. 22, over the 16 states: m^2, (m/s)^2 and rad^2 added, position and clock dominate) or its determinant "
-        "(unit-free)")
-
-
 class CiNode(EkfNode):
     algorithm = "ekf-ci"
 
     def __init__(self, aid, x0, P0, imu: ins.ImuSpec = ins.ImuSpec(), clock: ins.ClockSpec = ins.ClockSpec(),
-                 settings: CiSettings = CiSettings()):
+                 criterion: str = "trace"):
         super().__init__(aid, x0, P0, imu, clock)
-        self.settings = settings
+        if criterion not in ("trace", "det"):
+            raise ValueError(f"criterion {criterion!r}: trace or det")
+        self.criterion = criterion
         self.measured: dict[int, tuple[np.ndarray, float]] = {}  # target -> (z = p_target - p_me, std), tick k
         self.heard: set[int] = set()  # neighbours whose tick-k beacon arrived
         self.held: list[tuple[int, Beacon]] = []  # beacons of later ticks, in arrival order
@@ -82,10 +70,9 @@ class CiNode(EkfNode):
         self.stats.update({"fused": 0, "unmeasured": 0, "held": 0})
 
     @classmethod
-    def from_scenario(cls, scenario, aid, settings=None):
-        node = super().from_scenario(scenario, aid)
-        node.settings = settings if isinstance(settings, CiSettings) else CiSettings.model_validate(settings or {})
-        return node
+    def spec(cls, scenario, aid, settings=None) -> NodeSpec:
+        base = super().spec(scenario, aid)
+        return NodeSpec(base.factory, {**base.kwargs, "criterion": getattr(settings, "criterion", "trace")})
 
     def resume(self, k, x, P) -> None:
         super().resume(k, x, P)
@@ -185,12 +172,12 @@ class CiNode(EkfNode):
         heading is lost (measured: an 85 deg attitude error, a 270 deg std after 120 s).
         """
         P = self.filter.P
-        if self.settings.criterion == "trace":
+        if self.criterion == "trace":
             return fusion.ci_update(np.zeros(DIM), P, dz, Pz, H_POSITION, "trace")
         keep = coupled(P, H_POSITION)
         sub = np.ix_(keep, keep)
         dx_k, P_k, omega = fusion.ci_update(np.zeros(len(keep)), P[sub], dz, Pz, H_POSITION[:, keep],
-                                            self.settings.criterion)
+                                            self.criterion)
         dx, P_new = np.zeros(DIM), P.copy()
         dx[keep], P_new[sub] = dx_k, P_k
         return dx, P_new, omega

@@ -79,13 +79,12 @@ import dataclasses
 import math
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
 from swarmloc import ins
 from swarmloc.estimators.ekf import EkfNode, RejectedInput, checked, checked_covariance, checked_std, imu_spec
 from swarmloc.estimators.ekf_ccl import UAS, JointEkf
 from swarmloc.messages import CentreData, CentreEstimate, Sensors
-from swarmloc.node import Idle, Node, Send, Timer
+from swarmloc.node import Idle, Node, NodeSpec, Send, Timer
 
 GROUND_STATION = "ground-station"
 MAX_ABS = 1e9
@@ -101,21 +100,7 @@ RUN = "run"
 """The centre's timer tag: run the pending tick."""
 
 
-class CentreSettings(BaseModel):
-    """Parameters of the fusion-centre estimator ("ekf-centre")."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    centre: int | None = Field(None, ge=0, description="agent id of the ground station that runs the fusion centre; "
-                               "default: the scenario's only ground-station agent")
-    wait: float = Field(0.05, ge=0, description="seconds the centre waits, from the first datum of a tick, for the "
-                        "other UAS' data before it runs the tick with what it has")
-    forget_after: int = Field(20, ge=1, description="ticks without data after which the centre stops waiting for a UAS "
-                              "(a UAS without data in a tick leaves the joint state at once, and is taken back in from "
-                              "its own estimate when its data come again)")
-
-
-def centre_id(scenario, settings: CentreSettings) -> int:
+def centre_id(scenario, settings) -> int:
     """The fusion centre's agent: settings.centre, or the scenario's only ground station."""
     stations = [a.id for a in scenario.world.agents if a.model == GROUND_STATION]
     if settings.centre is not None:
@@ -129,19 +114,21 @@ def centre_id(scenario, settings: CentreSettings) -> int:
     return stations[0]
 
 
-def make_node(scenario, aid: int, settings: CentreSettings | None = None) -> Node:
+def node_spec(scenario, aid: int, settings) -> NodeSpec:
     """The ekf-centre node of agent aid: the FusionCentre on the centre's ground station, a
-    CentreClient on every uas-ins agent, an idle node (swarmloc.node.Idle) on any other ground station."""
-    settings = settings if settings is not None else CentreSettings()
+    CentreClient on every uas-ins agent, an idle node (swarmloc.node.Idle) on any other ground station.
+    settings: swarmloc.estimators.settings.CentreSettings."""
     centre = centre_id(scenario, settings)
     model = scenario.agent(aid).model
     if aid == centre:
         roster = [a.id for a in scenario.world.agents if a.model == UAS.name]
-        return FusionCentre(aid, roster, imu_spec(scenario), wait=settings.wait, forget_after=settings.forget_after)
+        return NodeSpec.of(FusionCentre, aid=aid, roster=roster, imu=imu_spec(scenario), wait=settings.wait,
+                           forget_after=settings.forget_after)
     if model == UAS.name:
-        return CentreClient.from_scenario(scenario, aid, settings)
+        base = CentreClient.spec(scenario, aid)
+        return NodeSpec(base.factory, {**base.kwargs, "centre": centre})
     if model == GROUND_STATION:
-        return Idle(aid, CentreClient.algorithm)
+        return NodeSpec.of(Idle, aid=aid, algorithm=CentreClient.algorithm)
     raise ValueError(f"ekf-centre runs on {UAS.name} platforms; agent {aid} is {model}")
 
 
@@ -209,12 +196,6 @@ class CentreClient(EkfNode):
         self.frame: Sensors | None = None  # this tick's frame: a late answer is adopted under it
         self.stats.update({"centre_ticks": 0, "own_ticks": 0, "stale": 0, "centre_unreachable": 0, "state_sent": 0,
                            "late_adopted": 0})
-
-    @classmethod
-    def from_scenario(cls, scenario, aid, settings=None) -> "CentreClient":
-        node = super().from_scenario(scenario, aid, settings)
-        node.centre = centre_id(scenario, settings if settings is not None else CentreSettings())
-        return node
 
     def resume(self, k, x, P) -> None:
         super().resume(k, x, P)
@@ -425,5 +406,5 @@ class FusionCentre(Node):
         return joined
 
 
-__all__ = ["CentreSettings", "CentreClient", "FusionCentre", "make_node", "centre_id", "check_state",
+__all__ = ["CentreClient", "FusionCentre", "node_spec", "centre_id", "check_state",
            "check_frame", "MAX_ABS"]

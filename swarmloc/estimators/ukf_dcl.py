@@ -44,7 +44,6 @@ import logging
 from collections import deque
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
 from swarmloc import fusion, kalman
 from swarmloc.messages import (CHAIN_OK, CHAIN_REFUSED, CHAIN_UNREACHABLE, CHAIN_VERSION, Beacon, DclCommit, DclLog,
@@ -52,7 +51,7 @@ from swarmloc.messages import (CHAIN_OK, CHAIN_REFUSED, CHAIN_UNREACHABLE, CHAIN
 from swarmloc.estimators.neighbours import NeighbourTable, RetryBudget
 from swarmloc.estimators.rejoin import Multilateration
 from swarmloc.models import Range
-from swarmloc.node import Estimate, Node, Send, keyed_ranges, odometry_of
+from swarmloc.node import Estimate, Node, NodeSpec, Send, keyed_ranges, odometry_of
 
 log = logging.getLogger(__name__)
 Key = tuple[int, int, int]
@@ -66,27 +65,15 @@ MAX_QUEUED = 64  # bounded chains: starts waiting at a busy measured platform
 HOLD_TICKS = 10  # real time: longest wait for the commit of a chain we reported to
 
 
-class DclSettings(BaseModel):
-    """UKF-DCL settings (scenario `estimator.params`)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    max_chain: int | None = Field(
-        None, ge=2, description="the most platforms one chain visits, the measuring and the measured one included "
-        "(bounded chains). The platforms a chain does not visit apply its commit as outsiders, and chains whose "
-        "platforms are busy run at the same time instead of one after the other. null: every chain visits the "
-        "whole connected swarm, one chain at a time, and the filter equals the centralized UKF")
-
-
 class UkfDclNode(Node):
     algorithm = "ukf-dcl"
 
     @classmethod
-    def from_scenario(cls, scenario, aid, settings=None):
+    def spec(cls, scenario, aid, settings=None) -> NodeSpec:
         est = scenario.estimation
-        settings = settings if isinstance(settings, DclSettings) else DclSettings.model_validate(settings or {})
-        return cls(aid, *scenario.prior(aid), scenario.agent(aid).model, spread=est.spread, rejoin_std=est.rejoin_std,
-                   max_chain=settings.max_chain)
+        x0, P0 = scenario.prior(aid)
+        return NodeSpec.of(cls, aid=aid, x0=x0, P0=P0, model=scenario.agent(aid).model, spread=est.spread,
+                           rejoin_std=est.rejoin_std, max_chain=getattr(settings, "max_chain", None))
 
     def __init__(self, aid, x0, P0, model="planar-speed-heading", spread: float | None = None, max_retries: int = 3,
                  rejoin_std: float | None = 15.0, max_chain: int | None = None):

@@ -1,0 +1,54 @@
+"""The estimators' settings (scenario `estimator.params`), validated where the scenario is.
+
+They live apart from the nodes on purpose: an agent process builds its node from a NodeSpec of
+plain values (swarmloc.node), so it never imports pydantic, which costs an agent about 17 MB.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class NoSettings(BaseModel):
+    """An estimator without parameters of its own."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class DclSettings(BaseModel):
+    """UKF-DCL settings."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    max_chain: int | None = Field(
+        None, ge=2, description="the most platforms one chain visits, the measuring and the measured one included "
+        "(bounded chains). The platforms a chain does not visit apply its commit as outsiders, and chains whose "
+        "platforms are busy run at the same time instead of one after the other. null: every chain visits the "
+        "whole connected swarm, one chain at a time, and the filter equals the centralized UKF")
+
+
+class CiSettings(BaseModel):
+    """EKF-CI (and naive fusion) settings."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    criterion: Literal["trace", "det"] = Field(
+        "trace", description="what the CI weight omega minimises in the fused covariance: its trace (the paper's "
+        "eq. 22, over the 16 states: m^2, (m/s)^2 and rad^2 added, position and clock dominate) or its determinant "
+        "(unit-free)")
+
+
+class CentreSettings(BaseModel):
+    """Parameters of the fusion-centre estimator ("ekf-centre")."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    centre: int | None = Field(None, ge=0, description="agent id of the ground station that runs the fusion centre; "
+                               "default: the scenario's only ground-station agent")
+    wait: float = Field(0.05, ge=0, description="seconds the centre waits, from the first datum of a tick, for the "
+                        "other UAS' data before it runs the tick with what it has")
+    forget_after: int = Field(20, ge=1, description="ticks without data after which the centre stops waiting for a UAS "
+                              "(a UAS without data in a tick leaves the joint state at once, and is taken back in from "
+                              "its own estimate when its data come again)")
