@@ -267,6 +267,9 @@ class Envelope:
     KEYS: ClassVar[frozenset] = frozenset({"v", "type", "src", "seq", "dst", "body"})
 
 
+_SRC, _SEQ, _DST = Int(0, MAX_ID), Int(0, 2**63 - 1), Optional(Int(0, MAX_ID))  # every frame's header fields
+
+
 def encode(msg, src: int, seq: int, dst: int | None = None) -> bytes:
     env = {"v": SCHEMA_VERSION, "type": msg.TYPE, "src": int(src), "seq": int(seq), "dst": dst, "body": encode_body(msg)}
     return msgpack.packb(env, use_bin_type=True)
@@ -282,7 +285,8 @@ def decode(data: bytes, expect: tuple[type, ...] | None = None, body: bool = Tru
     if len(data) > MAX_FRAME_BYTES:
         raise WireError(f"frame of {len(data)} bytes exceeds {MAX_FRAME_BYTES}")
     try:
-        env = msgpack.unpackb(bytes(data), raw=False, strict_map_key=False, max_bin_len=MAX_FRAME_BYTES)
+        env = msgpack.unpackb(data if type(data) is bytes else bytes(data), raw=False, strict_map_key=False,
+                              max_bin_len=MAX_FRAME_BYTES)
     except Exception as exc:  # msgpack raises several unrelated exception types
         raise WireError(f"not MessagePack: {exc.__class__.__name__}") from None
     if not isinstance(env, dict) or not Envelope.KEYS.issuperset(env) or "body" not in env:
@@ -294,9 +298,9 @@ def decode(data: bytes, expect: tuple[type, ...] | None = None, body: bool = Tru
         raise WireError(f"unknown message type {env.get('type')!r}")
     if expect is not None and cls not in expect:
         raise WireError(f"message type {cls.TYPE!r} not expected here")
-    src = Int(0, MAX_ID).decode(env.get("src"), "src")
-    seq = Int(0, 2**63 - 1).decode(env.get("seq"), "seq")
-    dst = Optional(Int(0, MAX_ID)).decode(env.get("dst"), "dst")
+    src = _SRC.decode(env.get("src"), "src")
+    seq = _SEQ.decode(env.get("seq"), "seq")
+    dst = _DST.decode(env.get("dst"), "dst")
     return Envelope(cls.TYPE, src, seq, decode_body(cls, env["body"]) if body else env["body"], dst)
 
 
