@@ -3,7 +3,13 @@
 The module is transport-free and deterministic given a ``numpy.random.Generator``:
 the emulator feeds it positions (:meth:`RadioMedium.set_positions`), frames
 (:meth:`RadioMedium.offer`) and the clock (:meth:`RadioMedium.advance`), and it
-returns one :class:`Outcome` per (frame, receiver).
+returns one :class:`Outcome` per (frame, receiver), or the same as :class:`Outcomes`
+arrays (``offer_arrays``, ``advance_arrays``, ``run_to_idle``).
+
+The medium works on arrays: positions and everything that follows from them alone
+(distances, received powers, who senses whom) are computed once per
+:meth:`RadioMedium.set_positions`; a transmission is judged at all its receivers at once,
+and the broadcasts that end within one ``advance`` are judged together.
 
 Two channel models implement :class:`ChannelModel`:
 
@@ -19,13 +25,13 @@ The formulas, defaults and their sources are documented in ``docs/radio.md``.
 
 from __future__ import annotations
 
-import heapq
-import itertools
 import math
+from bisect import bisect_left
 from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
+from operator import attrgetter
 from typing import Annotated, Literal, Protocol, Union
 
 import numpy as np
@@ -40,6 +46,7 @@ __all__ = [
     "Modulation",
     "TxFrame",
     "Outcome",
+    "Outcomes",
     "LinkInfo",
     "Jammer",
     "RxBatch",
@@ -207,6 +214,64 @@ class Outcome:
     sinr_db: float
 
 
+# Reasons as small integers, so a batch of receptions carries them in one array:
+# 0 is "delivered", k > 0 is DROP_REASONS[k - 1].
+REASON_CODE: dict[Reason | None, int] = {None: 0, **{r: k + 1 for k, r in enumerate(DROP_REASONS)}}
+_DISTANCE, _SINR, _COLLISION, _HALF_DUPLEX, _QUEUE, _JAMMED = (REASON_CODE[r] for r in DROP_REASONS)
+_REASON_OF_CODE: tuple[Reason | None, ...] = (None, *DROP_REASONS)
+
+
+@dataclass(frozen=True)
+class Outcomes:
+    """Many :class:`Outcome` as parallel arrays (one entry per frame and receiver).
+
+    ``reason`` holds codes (0 delivered, k > 0 ``DROP_REASONS[k - 1]``).
+    """
+
+    uid: NDArray[np.int64]
+    src: NDArray[np.int64]
+    receiver: NDArray[np.int64]
+    t: FloatArray
+    reason: NDArray[np.int8]
+    sinr_db: FloatArray
+
+    def __len__(self) -> int:
+        return len(self.uid)
+
+    @property
+    def delivered(self) -> NDArray[np.bool_]:
+        return self.reason == 0
+
+    @staticmethod
+    def empty() -> Outcomes:
+        i, f = np.zeros(0, np.int64), np.zeros(0)
+        return Outcomes(i, i, i, f, np.zeros(0, np.int8), f)
+
+    @staticmethod
+    def concat(parts: Sequence[Outcomes]) -> Outcomes:
+        if len(parts) == 1:
+            return parts[0]
+        if not parts:
+            return Outcomes.empty()
+        return Outcomes(*(np.concatenate([getattr(o, f) for o in parts]) for f in _OUTCOME_FIELDS))
+
+    def take(self, idx: NDArray[np.intp]) -> Outcomes:
+        return Outcomes(*(getattr(self, f)[idx] for f in _OUTCOME_FIELDS))
+
+    def to_list(self) -> list[Outcome]:
+        reasons = [_REASON_OF_CODE[c] for c in self.reason.tolist()]
+        return [
+            Outcome(u, s, r, why is None, t, why, q)
+            for u, s, r, t, why, q in zip(
+                self.uid.tolist(), self.src.tolist(), self.receiver.tolist(), self.t.tolist(), reasons,
+                self.sinr_db.tolist(),
+            )
+        ]
+
+
+_OUTCOME_FIELDS = ("uid", "src", "receiver", "t", "reason", "sinr_db")
+
+
 @dataclass(frozen=True)
 class LinkInfo:
     """Mean (interference-free) quality of the directed link ``src -> dst``.
@@ -316,7 +381,21 @@ class ChannelModel(Protocol):
     def decide(self, batch: RxBatch, rng: np.random.Generator) -> Verdicts: ...
     def delivery_delay_s(self, distance_m: FloatArray, rng: np.random.Generator) -> FloatArray: ...
     def backoff_s(self, stage: int, rng: np.random.Generator) -> float: ...
+    def backoff_window(self, stage: int) -> tuple[float, float, int]: ...
     def link_quality(self, distance_m: float, shadow_db: float, size: int) -> tuple[float, float, float, bool]: ...
+    def link_quality_arrays(
+        self, distance_m: FloatArray, shadow_db: FloatArray, size: int
+    ) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]: ...
+    def judge(
+        self,
+        distance_m: FloatArray,
+        signal_dbm: FloatArray,
+        interference_tx_mw: FloatArray,
+        interference_all_mw: FloatArray,
+        half_duplex: NDArray[np.bool_],
+        bits: NDArray[np.int64],
+        rng: np.random.Generator,
+    ) -> tuple[NDArray[np.int8], FloatArray]: ...
 
 
 def _uniform_jitter(jitter_s: float, n: int, rng: np.random.Generator) -> FloatArray:
@@ -382,13 +461,24 @@ class UnitDisk(BaseModel):
         return np.full(np.shape(distance_m), np.nan)
 
     def decide(self, batch: RxBatch, rng: np.random.Generator) -> Verdicts:
-        far = batch.distance_m > self.range_m
-        busy = batch.half_duplex & ~far
-        delivered = ~far & ~busy
-        reasons: list[Reason | None] = [
-            "distance" if f else ("half-duplex" if b else None) for f, b in zip(far.tolist(), busy.tolist())
-        ]
-        return delivered, reasons, np.full(len(reasons), np.nan)
+        return _verdicts(self.judge(batch.distance_m, self.rx_power_dbm(batch.distance_m, batch.shadow_db),
+                                    batch.interference_tx_mw, batch.interference_all_mw, batch.half_duplex,
+                                    np.full(len(batch.distance_m), batch.bits), rng))
+
+    def judge(
+        self,
+        distance_m: FloatArray,
+        signal_dbm: FloatArray,
+        interference_tx_mw: FloatArray,
+        interference_all_mw: FloatArray,
+        half_duplex: NDArray[np.bool_],
+        bits: NDArray[np.int64],
+        rng: np.random.Generator,
+    ) -> tuple[NDArray[np.int8], FloatArray]:
+        """Reason codes (0 = delivered) and SINR (nan: no notion of power) for each reception."""
+        far = distance_m > self.range_m
+        code = np.where(far, _DISTANCE, np.where(half_duplex, _HALF_DUPLEX, 0)).astype(np.int8)
+        return code, np.full(len(code), np.nan)
 
     def delivery_delay_s(self, distance_m: FloatArray, rng: np.random.Generator) -> FloatArray:
         n = len(distance_m)
@@ -397,9 +487,19 @@ class UnitDisk(BaseModel):
     def backoff_s(self, stage: int, rng: np.random.Generator) -> float:
         return 0.0
 
+    def backoff_window(self, stage: int) -> tuple[float, float, int]:
+        return 0.0, 0.0, 0
+
     def link_quality(self, distance_m: float, shadow_db: float, size: int) -> tuple[float, float, float, bool]:
         up = distance_m <= self.range_m
         return math.nan, math.nan, 1.0 if up else 0.0, up
+
+    def link_quality_arrays(
+        self, distance_m: FloatArray, shadow_db: FloatArray, size: int
+    ) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
+        up = distance_m <= self.range_m
+        nan = np.full(np.shape(distance_m), np.nan)
+        return nan, nan.copy(), up.astype(float), up
 
 
 class LogDistance(BaseModel):
@@ -572,7 +672,7 @@ class LogDistance(BaseModel):
             modulation=self.modulation,
         )
 
-    def _per_linear(self, sinr: FloatArray, bits: int) -> FloatArray:
+    def _per_linear(self, sinr: FloatArray, bits: ArrayLike) -> FloatArray:
         ebn0 = _ebn0(sinr, self.bandwidth_hz, self.bitrate_bps)
         return _per_from_ber(_ber_from_ebn0(ebn0, self.modulation), bits)
 
@@ -587,44 +687,40 @@ class LogDistance(BaseModel):
         return np.asarray(jammer.power_dbm + in_band_db + self.rx_gain_dbi - self.path_loss_db(distance_m), dtype=float)
 
     def decide(self, batch: RxBatch, rng: np.random.Generator) -> Verdicts:
-        signal_dbm = self.rx_power_dbm(batch.distance_m, batch.shadow_db)
+        return _verdicts(self.judge(batch.distance_m, self.rx_power_dbm(batch.distance_m, batch.shadow_db),
+                                    batch.interference_tx_mw, batch.interference_all_mw, batch.half_duplex,
+                                    np.full(len(batch.distance_m), batch.bits), rng))
+
+    def judge(
+        self,
+        distance_m: FloatArray,
+        signal_dbm: FloatArray,
+        interference_tx_mw: FloatArray,
+        interference_all_mw: FloatArray,
+        half_duplex: NDArray[np.bool_],
+        bits: NDArray[np.int64],
+        rng: np.random.Generator,
+    ) -> tuple[NDArray[np.int8], FloatArray]:
+        """Reason codes (0 = delivered) and worst-case SINR (dB) for each reception."""
         signal_mw = np.power(10.0, signal_dbm / 10.0)
         noise = self._noise_mw
-        sinr_all = signal_mw / (noise + batch.interference_all_mw)
+        sinr_all = signal_mw / (noise + interference_all_mw)
         with np.errstate(divide="ignore"):
             sinr_db = 10.0 * np.log10(sinr_all)
-
-        k = len(signal_dbm)
-        delivered = np.zeros(k, dtype=bool)
-        reasons: list[Reason | None] = [None] * k
         far = signal_dbm < self.effective_sensitivity_dbm
-        busy = batch.half_duplex & ~far
-        for i in np.flatnonzero(far):
-            reasons[i] = "distance"
-        for i in np.flatnonzero(busy):
-            reasons[i] = "half-duplex"
-
-        idx = np.flatnonzero(~far & ~busy)
+        code = np.where(far, _DISTANCE, np.where(half_duplex, _HALF_DUPLEX, 0)).astype(np.int8)
+        idx = np.flatnonzero(code == 0)
         if idx.size:
             # One uniform per reception, compared against nested PERs, so the
             # drop is attributed to the weakest impairment that explains it.
             u = rng.random(idx.size)
-            s = signal_mw[idx]
-            p_all = self._per_linear(sinr_all[idx], batch.bits)
-            p_tx = self._per_linear(s / (noise + batch.interference_tx_mw[idx]), batch.bits)
-            p_snr = self._per_linear(s / noise, batch.bits)
-            ok = u >= p_all
-            delivered[idx] = ok
-            for j, i in enumerate(idx.tolist()):
-                if ok[j]:
-                    continue
-                if u[j] >= p_tx[j]:
-                    reasons[i] = "jammed"
-                elif u[j] >= p_snr[j]:
-                    reasons[i] = "collision"
-                else:
-                    reasons[i] = "sinr"
-        return delivered, reasons, sinr_db
+            lost = u < self._per_linear(sinr_all[idx], bits[idx])
+            idx, u = idx[lost], u[lost]
+            s, b = signal_mw[idx], bits[idx]
+            p_tx = self._per_linear(s / (noise + interference_tx_mw[idx]), b)
+            p_snr = self._per_linear(s / noise, b)
+            code[idx] = np.where(u >= p_tx, _JAMMED, np.where(u >= p_snr, _COLLISION, _SINR))
+        return code, sinr_db
 
     def delivery_delay_s(self, distance_m: FloatArray, rng: np.random.Generator) -> FloatArray:
         n = len(distance_m)
@@ -633,8 +729,12 @@ class LogDistance(BaseModel):
 
     def backoff_s(self, stage: int, rng: np.random.Generator) -> float:
         """DIFS + U{0..CW} slots with CW = min((cw_min + 1) 2^stage - 1, cw_max) (binary exponential)."""
-        cw = min((self.cw_min + 1) * (2 ** min(stage, 30)) - 1, self.cw_max)
-        return self.difs_s + self.slot_s * int(rng.integers(0, cw + 1))
+        fixed, slot, cw = self.backoff_window(stage)
+        return fixed + slot * int(rng.integers(0, cw + 1))
+
+    def backoff_window(self, stage: int) -> tuple[float, float, int]:
+        """(DIFS, slot, CW) of :meth:`backoff_s`: the backoff is DIFS + U{0..CW} slots."""
+        return self.difs_s, self.slot_s, min((self.cw_min + 1) * (2 ** min(stage, 30)) - 1, self.cw_max)
 
     def link_quality(self, distance_m: float, shadow_db: float, size: int) -> tuple[float, float, float, bool]:
         rx = float(self.rx_power_dbm(np.asarray(distance_m), np.asarray(shadow_db)))
@@ -644,6 +744,21 @@ class LogDistance(BaseModel):
         else:
             pdr = 1.0 - float(self.per(snr_db, self.frame_bits(size)))
         return rx, snr_db, pdr, pdr >= 0.5
+
+    def link_quality_arrays(
+        self, distance_m: FloatArray, shadow_db: FloatArray, size: int
+    ) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
+        """:meth:`link_quality` over arrays of links: (rx dBm, SNR dB, PDR, up)."""
+        rx = self.rx_power_dbm(distance_m, shadow_db)
+        snr_db = rx - self.noise_floor_dbm
+        pdr = np.where(rx < self.effective_sensitivity_dbm, 0.0,
+                       1.0 - np.asarray(self.per(snr_db, self.frame_bits(size)), dtype=float))
+        return rx, snr_db, pdr, pdr >= 0.5
+
+
+def _verdicts(judged: tuple[NDArray[np.int8], FloatArray]) -> Verdicts:
+    code, sinr_db = judged
+    return code == 0, [_REASON_OF_CODE[c] for c in code.tolist()], sinr_db
 
 
 ChannelConfig = Annotated[Union[UnitDisk, LogDistance], Field(discriminator="model")]
@@ -696,6 +811,11 @@ class _ShadowField:
         self._pos = pos
         self._index = {node: k for k, node in enumerate(ids)}
 
+    def matrix(self) -> FloatArray:
+        """Shadowing (dB) between every two known nodes, in ascending id order."""
+        n = len(self._index)
+        return np.zeros((n, n)) if self._sigma == 0.0 else self._s
+
     def pair(self, a: int, b: int) -> float:
         """Shadowing (dB) between ``a`` and ``b``; 0 if either is unknown."""
         if self._sigma == 0.0:
@@ -718,17 +838,14 @@ class _ShadowField:
 # --------------------------------------------------------------------------- #
 # Medium
 # --------------------------------------------------------------------------- #
-# At equal times, ends are handled before new attempts so that the order is fixed.
-_END = 0
-_TRY = 1
-
-
-@dataclass(eq=False)
+@dataclass(eq=False, slots=True)
 class _Tx:
     frame: TxFrame
     start: float
     end: float
     pos: FloatArray  # sender position when the transmission started
+    gen: int  # the geometry (set_positions call) it started under
+    row: int  # its sender's row in that geometry
 
     @property
     def src(self) -> int:
@@ -737,9 +854,37 @@ class _Tx:
 
 @dataclass
 class _Sender:
+    slot: int  # index into the medium's per-sender arrays
     queue: deque[TxFrame] = field(default_factory=deque)
     current: TxFrame | None = None
-    retry: int = 0
+
+
+@dataclass(frozen=True)
+class _Geometry:
+    """Positions and what follows from them alone; fixed until the next set_positions.
+
+    Rows and columns are the known nodes in ascending id order. ``rx_dbm[i, j]`` is the
+    mean received power at j of a frame from i (shadowing included), ``hears[i, j]``
+    whether j senses i's transmissions above the CCA threshold (never itself; an extra
+    last column of False, so that ``hears[i, -1]`` asks about a node not in the world).
+    """
+
+    ids: NDArray[np.int64]
+    index: dict[int, int]
+    xyz: FloatArray
+    distance: FloatArray
+    shadow: FloatArray
+    rx_dbm: FloatArray
+    rx_mw: FloatArray
+    hears: NDArray[np.bool_]
+
+
+def _distances(a: FloatArray, b: FloatArray) -> FloatArray:
+    diff = a[:, None, :] - b[None, :, :]
+    return np.sqrt(np.add.reduce(diff * diff, axis=2))
+
+
+_END_TIME = attrgetter("end")
 
 
 class RadioMedium:
@@ -755,6 +900,10 @@ class RadioMedium:
     after each frame it performs a post-backoff. A failed unicast attempt (the
     sender is assumed to learn this instantly; ACKs use no airtime) is retried
     after a binary-exponential backoff, and only the final attempt is reported.
+
+    :meth:`offer_arrays`, :meth:`advance_arrays` and :meth:`run_to_idle` return the
+    same outcomes as :class:`Outcomes` arrays; :meth:`offer` and :meth:`advance` as
+    :class:`Outcome` objects.
     """
 
     def __init__(self, model: ChannelModel, rng: np.random.Generator) -> None:
@@ -762,13 +911,28 @@ class RadioMedium:
         self._rng = rng
         self._pos: dict[int, FloatArray] = {}
         self._shadow = _ShadowField(model.shadowing_sigma_db, model.shadowing_decorrelation_m)
+        self._geo = self._geometry()
+        self._gen = 0
+        self._links: dict[int, tuple[FloatArray, ...]] = {}
         self._jammers: tuple[Jammer, ...] = ()
         self._senders: dict[int, _Sender] = {}
-        self._events: list[tuple[float, int, int, object]] = []
-        self._pending: list[tuple[float, int, Outcome]] = []
-        self._txs: list[_Tx] = []
-        self._on_air: dict[int, _Tx] = {}
-        self._seq = itertools.count()
+        # Per sender slot: its node, the time of its next attempt (inf: none), the retries of
+        # the frame in service and its row in the geometry (-1: not in the world).
+        self._sender_ids: list[int] = []
+        self._try_at = np.zeros(0)
+        self._stage = np.zeros(0, np.int64)
+        self._retrying = 0  # senders whose stage is not 0
+        self._slot_row = np.zeros(0, np.int64)
+        self._windows: list[tuple[float, float, int]] = []  # the model's backoff window per retry stage
+        self._spare = np.zeros(0)  # uniforms drawn for backoffs and not used yet
+        self._first_stage = np.zeros(0)  # stage-0 backoffs drawn and not used yet
+        self._frame_bits: dict[int, int] = {}  # by payload size
+        self._airtime: dict[int, float] = {}  # by payload size
+        self._on_air: list[_Tx] = []  # in start order
+        self._txs: list[_Tx] = []  # on air or ended recently enough to overlap one on air
+        self._unjudged: list[tuple[_Tx, list[_Tx]]] = []  # ended broadcasts and what overlapped them
+        self._pending: list[tuple[Outcomes, NDArray[np.int64]]] = []  # (outcomes, order reported)
+        self._reported = 0
         self._now = -math.inf
 
     # --- inputs ---------------------------------------------------------------
@@ -790,6 +954,10 @@ class RadioMedium:
         """
         self._pos = {int(k): _pos3(v) for k, v in positions.items()}
         self._shadow.update(self._pos, self._rng)
+        self._geo = self._geometry()
+        self._gen += 1
+        self._links = {}
+        self._slot_row = np.array([self._geo.index.get(a, -1) for a in self._sender_ids], np.int64)
 
     def set_jammers(self, jammers: Sequence[Jammer]) -> None:
         """Replace the jammer list; each acts on frames whose airtime meets [t_start, t_end)."""
@@ -797,198 +965,446 @@ class RadioMedium:
 
     def offer(self, frame: TxFrame, t: float) -> list[Outcome]:
         """Queue ``frame`` at its sender at time ``t``; returns the immediate ``"queue"`` drops."""
+        out = self.offer_arrays(frame, t)
+        return [] if out is None else out.to_list()
+
+    def offer_arrays(self, frame: TxFrame, t: float) -> Outcomes | None:
+        """:meth:`offer`, the drops (if any) as arrays."""
         t = max(t, self._now)
-        sender = self._senders.setdefault(frame.src, _Sender())
+        sender = self._senders.get(frame.src) or self._new_sender(frame.src)
         if sender.current is None:
-            sender.current = frame
-            sender.retry = 0
-            self._push(t, _TRY, frame.src)
-            return []
+            sender.current = frame  # its stage is 0: _finish left it so
+            self._try_at[sender.slot] = t
+            return None
         cap = self._model.queue_size
         if cap is not None and len(sender.queue) >= cap:
-            return [
-                Outcome(frame.uid, frame.src, r, False, t, "queue", math.nan) for r in self._receivers(frame)
-            ]
+            return self._drops(frame, t, _QUEUE)
         sender.queue.append(frame)
-        return []
+        return None
 
     # --- time -----------------------------------------------------------------
     def advance(self, t: float) -> list[Outcome]:
         """Resolve every event up to ``t``; return outcomes with ``outcome.t <= t`` in time order."""
-        while self._events and self._events[0][0] <= t:
-            time, kind, _, payload = heapq.heappop(self._events)
-            self._now = max(self._now, time)
-            if kind == _END:
-                assert isinstance(payload, _Tx)
-                self._end(payload, time)
-            else:
-                assert isinstance(payload, int)
-                self._try(payload, time)
+        return self.advance_arrays(t).to_list()
+
+    def advance_arrays(self, t: float) -> Outcomes:
+        """:meth:`advance`, the outcomes as arrays."""
+        self._run(t)
         self._now = max(self._now, t)
-        out: list[Outcome] = []
-        while self._pending and self._pending[0][0] <= t:
-            out.append(heapq.heappop(self._pending)[2])
+        return self._take_pending(t)
+
+    def run_to_idle(self) -> Outcomes:
+        """Resolve everything offered; the clock stops at the last event or arrival, not at infinity."""
+        self._run(math.inf)
+        out = self._take_pending(math.inf)
+        if len(out):
+            self._now = max(self._now, float(out.t[-1]))
         return out
 
     def next_event_time(self) -> float | None:
         """Earliest time at which :meth:`advance` could change state or return an outcome."""
-        times = []
-        if self._events:
-            times.append(self._events[0][0])
-        if self._pending:
-            times.append(self._pending[0][0])
-        return min(times) if times else None
+        times = [min(x.end for x in self._on_air)] if self._on_air else []
+        if self._try_at.size:
+            times.append(float(self._try_at.min()))
+        times += [float(o.t.min()) for o, _ in self._pending]
+        t = min(times, default=math.inf)
+        return None if t == math.inf else t
 
     # --- queries --------------------------------------------------------------
     def link(self, a: int, b: int, size: int | None = None) -> LinkInfo:
         """Mean interference-free quality of ``a -> b`` with the current shadowing."""
-        d = float(np.linalg.norm(self._pos[a] - self._pos[b]))
+        ia, ib = self._geo.index[a], self._geo.index[b]
+        d = float(self._geo.distance[ia, ib])
         size = self._model.reference_frame_bytes if size is None else size
-        rx, snr, pdr, up = self._model.link_quality(d, self.shadowing_db(a, b), size)
+        rx, snr, pdr, up = self._model.link_quality(d, float(self._geo.shadow[ia, ib]), size)
         return LinkInfo(a, b, d, rx, snr, pdr, up, size)
+
+    def link_arrays(self, size: int | None = None) -> tuple[NDArray[np.int64], FloatArray, FloatArray, FloatArray,
+                                                            FloatArray, NDArray[np.bool_]]:
+        """:meth:`link` for every ordered pair: (ids, distance, rx dBm, SNR dB, PDR, up), matrices by id order."""
+        size = self._model.reference_frame_bytes if size is None else size
+        if size not in self._links:
+            geo = self._geo
+            self._links[size] = (geo.distance, *self._model.link_quality_arrays(geo.distance, geo.shadow, size))
+        return (self._geo.ids, *self._links[size])  # type: ignore[return-value]
 
     def shadowing_db(self, a: int, b: int) -> float:
         """Current shadowing loss (dB) between ``a`` and ``b``; symmetric."""
         return self._shadow.pair(a, b)
 
-    # --- internals ------------------------------------------------------------
-    def _push(self, t: float, kind: int, payload: object) -> None:
-        heapq.heappush(self._events, (t, kind, next(self._seq), payload))
+    # --- geometry -------------------------------------------------------------
+    def _geometry(self) -> _Geometry:
+        ids = sorted(self._pos)
+        n = len(ids)
+        xyz = np.array([self._pos[i] for i in ids], dtype=float).reshape(n, 3)
+        dist = _distances(xyz, xyz)
+        shadow = self._shadow.matrix()
+        rx = np.asarray(self._model.rx_power_dbm(dist, shadow), dtype=float).reshape(n, n)
+        cca = self._model.cca_threshold_dbm
+        hears = np.zeros((n, n + 1), dtype=bool)  # the last column answers for row -1: nobody there
+        if cca is not None:
+            hears[:, :n] = rx >= cca
+        np.fill_diagonal(hears, False)
+        return _Geometry(np.array(ids, dtype=np.int64), {a: k for k, a in enumerate(ids)}, xyz, dist, shadow, rx,
+                         np.power(10.0, rx / 10.0), hears)
 
-    def _receivers(self, frame: TxFrame) -> list[int]:
+    def _rows(self, txs: Sequence[_Tx]) -> tuple[FloatArray, FloatArray]:
+        """Distance and received power (dBm) from each transmission to every known node."""
+        geo = self._geo
+        rows = np.array([x.row if x.gen == self._gen else -1 for x in txs], dtype=np.int64)
+        dist, dbm = geo.distance[rows], geo.rx_dbm[rows]
+        for i in np.flatnonzero(rows < 0).tolist():
+            # Started before the last set_positions: from where it started, with today's shadowing.
+            x = txs[i]
+            dist[i] = np.linalg.norm(geo.xyz - x.pos, axis=1)
+            dbm[i] = self._model.rx_power_dbm(dist[i], self._shadow.get(x.src, geo.ids.tolist()))
+        return dist, dbm
+
+    # --- senders --------------------------------------------------------------
+    def _new_sender(self, node: int) -> _Sender:
+        sender = self._senders[node] = _Sender(len(self._sender_ids))
+        self._sender_ids.append(node)
+        self._try_at = np.append(self._try_at, math.inf)
+        self._stage = np.append(self._stage, 0)
+        self._slot_row = np.append(self._slot_row, self._geo.index.get(node, -1))
+        return sender
+
+    def _receivers(self, frame: TxFrame) -> NDArray[np.int64]:
         if frame.dst is not None:
-            return [frame.dst]
-        return sorted(n for n in self._pos if n != frame.src)
+            return np.array([frame.dst], dtype=np.int64)
+        return self._geo.ids[self._geo.ids != frame.src]
 
-    def _try(self, src: int, t: float) -> None:
-        sender = self._senders[src]
+    def _drops(self, frame: TxFrame, t: float, code: int) -> Outcomes:
+        r = self._receivers(frame)
+        k = len(r)
+        return Outcomes(np.full(k, frame.uid, np.int64), np.full(k, frame.src, np.int64), r, np.full(k, t),
+                        np.full(k, code, np.int8), np.full(k, np.nan))
+
+    # --- the event loop -------------------------------------------------------
+    def _run(self, limit: float) -> None:
+        # Events in time order, ends before attempts at equal times. Attempts between two
+        # ends that only defer are handled together (_attempts): nothing they do changes
+        # what the others sense.
+        while True:
+            ending = min(self._on_air, key=_END_TIME) if self._on_air else None
+            t_end = ending.end if ending is not None else math.inf
+            first = int(np.argmin(self._try_at)) if self._try_at.size else -1  # ties in slot order
+            t_try = float(self._try_at[first]) if first >= 0 else math.inf
+            if ending is not None and t_end <= t_try:
+                if t_end > limit:
+                    break
+                self._now = max(self._now, t_end)
+                self._on_air.remove(ending)
+                self._end(ending, t_end)
+            elif t_try <= limit and t_try < math.inf:
+                self._attempts(first, t_end, limit)
+            else:
+                break
+        if self._unjudged:
+            self._report(self._judge(self._unjudged))
+            self._unjudged = []
+
+    def _attempts(self, first: int, horizon: float, limit: float) -> None:
+        """Attempts before ``horizon`` (the next end) and ``limit``, ``first`` the earliest.
+
+        The usual case after an end: the channel is free, the earliest attempt transmits and
+        every attempt during its airtime senses it and defers. Anything else is left to
+        :meth:`_attempts_in_order`.
+        """
+        sensing = self._model.cca_threshold_dbm is not None
+        if self._on_air and sensing:
+            self._attempts_in_order(horizon, limit)
+            return
+        try_at = self._try_at
+        tx = self._start(first, float(try_at[first]))
+        if tx is None or not sensing:
+            return
+        cand = np.flatnonzero(try_at < min(horizon, tx.end, math.nextafter(limit, math.inf)))
+        if not cand.size:
+            return
+        if self._geo.hears[tx.row, self._slot_row[cand]].all():
+            try_at[cand] = tx.end + self._backoffs(cand)
+        else:
+            self._attempts_in_order(min(horizon, tx.end), limit)
+
+    def _attempts_in_order(self, horizon: float, limit: float) -> None:
+        """Every attempt before ``horizon`` (the next end) and ``limit``, in time order.
+
+        A sender that senses a transmission defers past its end, hence past the next end:
+        deferring never changes what anyone else senses, so the deferrals are drawn together
+        at the end. Each attempt that finds the channel free starts a transmission, which
+        those after it then sense, and which may bring the next end forward.
+        """
+        try_at = self._try_at
+        cand = np.flatnonzero(try_at < min(horizon, math.nextafter(limit, math.inf)))
+        if cand.size > 1:
+            cand = cand[np.argsort(try_at[cand], kind="stable")]  # ties in slot order
+        times = try_at[cand].tolist()
+        sensing = self._model.cca_threshold_dbm is not None
+        rows = self._slot_row[cand]
+        busy = self._busy_until(rows) if sensing and self._on_air else None  # None: nothing sensed yet
+        n, k = len(cand), 0
+        deferred: list[slice] = []
+        while k < n:
+            i = k
+            if busy is not None:
+                free = np.flatnonzero(busy[k:n] == -math.inf)
+                i = k + int(free[0]) if free.size else n
+            if i > k:
+                deferred.append(slice(k, i))
+            if i == n:
+                break
+            tx = self._start(int(cand[i]), times[i])
+            k = i + 1
+            if tx is None:  # nothing went on air, but the sender may try again before horizon
+                break
+            if tx.end < horizon:
+                horizon = tx.end
+                n = max(k, bisect_left(times, horizon))
+            if sensing and k < n:
+                heard = self._geo.hears[tx.row, rows[k:n]]
+                if busy is None:
+                    busy = np.full(len(cand), -math.inf)
+                busy[k:n] = np.where(heard, np.maximum(busy[k:n], tx.end), busy[k:n])
+        if deferred:
+            at = np.r_[tuple(deferred)] if len(deferred) > 1 else np.arange(deferred[0].start, deferred[0].stop)
+            slots = cand[at]
+            try_at[slots] = busy[at] + self._backoffs(slots)  # type: ignore[index]
+
+    def _backoffs(self, slots: NDArray[np.intp]) -> FloatArray:
+        """Backoffs of these senders at their retry stages, U{0..CW} slots each."""
+        k = len(slots)
+        stage = self._stage[slots] if self._retrying else None
+        top = int(stage.max()) if stage is not None else 0
+        while len(self._windows) <= top:
+            self._windows.append(self._model.backoff_window(len(self._windows)))
+        if top == 0:  # the usual case: drawn ahead, in blocks
+            if self._first_stage.size < k:
+                self._first_stage = np.concatenate([self._first_stage, self._backoff(0, self._uniforms(max(k, 1024)))])
+            b, self._first_stage = self._first_stage[:k], self._first_stage[k:]
+            return b
+        fixed, slot, cw = (np.array(v)[stage] for v in zip(*self._windows[: top + 1]))
+        return fixed + slot * np.floor(self._uniforms(k) * (cw + 1))
+
+    def _backoff(self, stage: int, u: FloatArray) -> FloatArray:
+        # Floats hold these windows exactly (far below 2^53), so the slot count is uniform on 0..CW.
+        fixed, slot, cw = self._windows[stage]
+        return fixed + slot * np.floor(u * (cw + 1))
+
+    def _uniforms(self, k: int) -> FloatArray:
+        # Drawn in blocks: deferrals take a few at a time, thousands of times per second.
+        if self._spare.size < k:
+            self._spare = np.concatenate([self._spare, self._rng.random(max(k, 1024))])
+        u, self._spare = self._spare[:k], self._spare[k:]
+        return u
+
+    def _busy_until(self, rows: NDArray[np.int64]) -> FloatArray:
+        """Per listener (row, -1 if gone), the latest end of what it senses now (-inf: the channel is free)."""
+        geo, gen = self._geo, self._gen
+        busy = np.full(len(rows), -math.inf)
+        for x in self._on_air:
+            heard = geo.hears[x.row, rows] if x.gen == gen else self._heard_stale(x, rows)
+            busy = np.where(heard, np.maximum(busy, x.end), busy)
+        return busy
+
+    def _heard_stale(self, x: _Tx, rows: NDArray[np.int64]) -> NDArray[np.bool_]:
+        geo = self._geo
+        dist = np.linalg.norm(geo.xyz[rows] - x.pos, axis=1)
+        listeners = geo.ids[rows]
+        power = self._model.rx_power_dbm(dist, self._shadow.get(x.src, listeners.tolist()))
+        cca = self._model.cca_threshold_dbm
+        return (power >= cca) & (listeners != x.src) & (rows >= 0)
+
+    def _start(self, slot: int, t: float) -> _Tx | None:
+        # Deferrals need not move the clock: a deferred sender always has a later event.
+        self._now = max(self._now, t)
+        self._try_at[slot] = math.inf
+        sender = self._senders[self._sender_ids[slot]]
         frame = sender.current
         if frame is None:
-            return
-        pos = self._pos.get(src)
-        if pos is None:
-            # A sender that left the world cannot radiate; its frame reaches nobody.
-            self._report(
-                [Outcome(frame.uid, src, r, False, t, "distance", math.nan) for r in self._receivers(frame)]
-            )
-            self._finish(src, t)
-            return
-        cca = self._model.cca_threshold_dbm
-        if cca is not None:
-            busy_until = self._sensed_busy_until(src, pos, t, cca)
-            if busy_until is not None:
-                self._push(busy_until + self._model.backoff_s(sender.retry, self._rng), _TRY, src)
-                return
-        tx = _Tx(frame, t, t + self._model.airtime_s(frame.size), pos.copy())
-        self._txs.append(tx)
-        self._on_air[id(tx)] = tx
-        self._push(tx.end, _END, tx)
-
-    def _sensed_busy_until(self, src: int, pos: FloatArray, t: float, cca_dbm: float) -> float | None:
-        heard = [x for x in self._txs if x.src != src and x.start <= t < x.end]
-        if not heard:
             return None
-        dist = np.linalg.norm(np.array([x.pos for x in heard]) - pos, axis=1)
-        shadow = np.array([self._shadow.pair(x.src, src) for x in heard])
-        power = self._model.rx_power_dbm(dist, shadow)
-        ends = [x.end for x, p in zip(heard, power.tolist()) if p >= cca_dbm]
-        return max(ends) if ends else None
+        row = int(self._slot_row[slot])
+        if row < 0:
+            # A sender that left the world cannot radiate; its frame reaches nobody.
+            self._report(self._drops(frame, t, _DISTANCE))
+            self._finish(sender, t)
+            return None
+        airtime = self._airtime.get(frame.size)
+        if airtime is None:
+            airtime = self._airtime[frame.size] = self._model.airtime_s(frame.size)
+        tx = _Tx(frame, t, t + airtime, self._geo.xyz[row], self._gen, row)
+        self._txs.append(tx)
+        self._on_air.append(tx)
+        return tx
 
     def _end(self, tx: _Tx, t: float) -> None:
-        outcomes = self._resolve(tx, t)
-        del self._on_air[id(tx)]
+        overlapping = [x for x in self._txs if x is not tx and x.start < tx.end and x.end > tx.start]
         sender = self._senders[tx.src]
-        failed_unicast = tx.frame.dst is not None and not outcomes[0].delivered
-        if failed_unicast and sender.retry < self._model.unicast_retries:
-            sender.retry += 1
-            self._push(t + self._model.backoff_s(sender.retry, self._rng), _TRY, tx.src)
+        if tx.frame.dst is None:
+            # A broadcast's fate changes nothing at its sender: judge it later, with others.
+            self._unjudged.append((tx, overlapping))
+            self._finish(sender, t)
         else:
-            self._report(outcomes)
-            self._finish(tx.src, t)
+            out = self._judge([(tx, overlapping)])
+            slot = sender.slot
+            if out.reason[0] != 0 and self._stage[slot] < self._model.unicast_retries:
+                self._retrying += int(self._stage[slot] == 0)
+                self._stage[slot] += 1
+                self._try_at[slot] = t + self._model.backoff_s(int(self._stage[slot]), self._rng)
+            else:
+                self._report(out)
+                self._finish(sender, t)
         self._prune()
 
-    def _finish(self, src: int, t: float) -> None:
-        sender = self._senders[src]
+    def _finish(self, sender: _Sender, t: float) -> None:
         sender.current = sender.queue.popleft() if sender.queue else None
-        sender.retry = 0
+        if self._stage[sender.slot]:
+            self._retrying -= 1
+            self._stage[sender.slot] = 0
         if sender.current is not None:
             # Post-backoff keeps a sender with a full queue from hogging a CSMA channel.
             wait = self._model.backoff_s(0, self._rng) if self._model.cca_threshold_dbm is not None else 0.0
-            self._push(t + wait, _TRY, src)
+            self._try_at[sender.slot] = t + wait
 
-    def _report(self, outcomes: Sequence[Outcome]) -> None:
-        for o in outcomes:
-            heapq.heappush(self._pending, (o.t, next(self._seq), o))
+    def _report(self, out: Outcomes) -> None:
+        if len(out):
+            self._pending.append((out, np.arange(self._reported, self._reported + len(out))))
+            self._reported += len(out)
+
+    def _take_pending(self, limit: float) -> Outcomes:
+        if not self._pending:
+            return Outcomes.empty()
+        out = Outcomes.concat([o for o, _ in self._pending])
+        seq = np.concatenate([s for _, s in self._pending]) if len(self._pending) > 1 else self._pending[0][1]
+        due = out.t <= limit
+        self._pending = [] if due.all() else [(out.take(~due), seq[~due])]
+        idx = np.flatnonzero(due)
+        return out.take(idx[np.lexsort((seq[idx], out.t[idx]))])
 
     def _prune(self) -> None:
         # Nothing unresolved starts before the earliest on-air start, and nothing
         # new starts before now, so older transmissions can no longer interfere.
-        horizon = min((x.start for x in self._on_air.values()), default=self._now)
+        horizon = min((x.start for x in self._on_air), default=self._now)
         horizon = min(horizon, self._now)
         self._txs = [x for x in self._txs if x.end > horizon]
 
-    def _resolve(self, tx: _Tx, t: float) -> list[Outcome]:
-        frame = tx.frame
-        receivers = self._receivers(frame)
-        known = [r for r in receivers if r in self._pos]
-        by_receiver: dict[int, Outcome] = {
-            r: Outcome(frame.uid, frame.src, r, False, t, "distance", math.nan)
-            for r in receivers
-            if r not in self._pos
-        }
-        if known:
-            rpos = np.array([self._pos[r] for r in known])
-            dist = np.linalg.norm(rpos - tx.pos, axis=1)
-            overlapping = [x for x in self._txs if x is not tx and x.start < tx.end and x.end > tx.start]
-            transmitting = {x.src for x in overlapping}
-            i_tx, i_all = self._interference(tx, overlapping, known, rpos)
-            batch = RxBatch(
-                distance_m=dist,
-                shadow_db=self._shadow.get(frame.src, known),
-                bits=self._model.frame_bits(frame.size),
-                half_duplex=np.array([r in transmitting for r in known], dtype=bool),
-                interference_tx_mw=i_tx,
-                interference_all_mw=i_all,
-            )
-            delivered, reasons, sinr_db = self._model.decide(batch, self._rng)
-            arrival = np.full(len(known), t)
-            arrival[delivered] = t + self._model.delivery_delay_s(dist[delivered], self._rng)
-            for k, r in enumerate(known):
-                by_receiver[r] = Outcome(
-                    frame.uid, frame.src, r, bool(delivered[k]), float(arrival[k]), reasons[k], float(sinr_db[k])
-                )
-        return [by_receiver[r] for r in receivers]
+    # --- judging --------------------------------------------------------------
+    def _judge(self, items: Sequence[tuple[_Tx, list[_Tx]]]) -> Outcomes:
+        """Outcomes of ended transmissions (each with those that overlapped it), all at once."""
+        geo = self._geo
+        n = len(geo.ids)
+        txs = [tx for tx, _ in items]
+        frames = [x.frame for x in txs]
+        uid = np.array([f.uid for f in frames], dtype=np.int64)
+        src = np.array([f.src for f in frames], dtype=np.int64)
+        src_row = self._row_of(src)
+        cols = np.arange(n)
+        wanted = cols != src_row[:, None]
+        unicast = np.array([f.dst is not None for f in frames], dtype=bool)
+        dst, dst_row = src, np.full(len(txs), -1)
+        if unicast.any():
+            dst = np.array([src[i] if f.dst is None else f.dst for i, f in enumerate(frames)], dtype=np.int64)
+            dst_row = np.where(unicast, self._row_of(dst), -1)
+            wanted[unicast] = cols == dst_row[unicast, None]
+        rx_tx, rx_row = np.nonzero(wanted)
+        at = rx_tx * n + rx_row  # into the flattened (transmission, node) matrices
+        dist, dbm = self._rows(txs)
+        d = dist.reshape(-1)[at]
+        i_tx, i_all, half_duplex = self._interference(items, n)
+        if half_duplex is None:
+            i_tx = i_all = np.zeros(len(at))
+            half_duplex = np.zeros(len(at), bool)
+        else:
+            i_tx, i_all, half_duplex = (m.reshape(-1)[at] for m in (i_tx, i_all, half_duplex))
+        bits = np.array([self._bits(f.size) for f in frames], dtype=np.int64)[rx_tx]
+        code, sinr_db = self._model.judge(d, dbm.reshape(-1)[at], i_tx, i_all, half_duplex, bits, self._rng)
+        end = np.array([x.end for x in txs])
+        t = end[rx_tx]
+        ok = code == 0
+        if ok.any():
+            t[ok] += self._model.delivery_delay_s(d[ok], self._rng)
+        out = Outcomes(uid[rx_tx], src[rx_tx], geo.ids[rx_row], t, code, sinr_db)
+        lost = np.flatnonzero(unicast & (dst_row < 0))  # to a node not in the world
+        if lost.size:
+            k = lost.size
+            gone = Outcomes(uid[lost], src[lost], dst[lost], end[lost], np.full(k, _DISTANCE, np.int8),
+                            np.full(k, np.nan))
+            out = Outcomes.concat([out, gone])
+            out = out.take(np.argsort(np.concatenate([rx_tx, lost]), kind="stable"))
+        return out
+
+    def _row_of(self, ids: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Each node's row in the geometry, -1 for nodes not in the world."""
+        known = self._geo.ids
+        if not known.size:
+            return np.full(len(ids), -1, np.int64)
+        at = np.minimum(np.searchsorted(known, ids), known.size - 1)
+        return np.where(known[at] == ids, at, -1)
+
+    def _bits(self, size: int) -> int:
+        bits = self._frame_bits.get(size)
+        if bits is None:
+            bits = self._frame_bits[size] = self._model.frame_bits(size)
+        return bits
 
     def _interference(
-        self, tx: _Tx, overlapping: Sequence[_Tx], known: Sequence[int], rpos: FloatArray
-    ) -> tuple[FloatArray, FloatArray]:
-        k = len(known)
+        self, items: Sequence[tuple[_Tx, list[_Tx]]], n: int
+    ) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]] | tuple[None, None, None]:
+        """Per transmission and node: worst-case interference (transmissions only, and with
+        jammers) over the airtime, in mW, and whether the node was itself transmitting;
+        all None if nothing overlapped any of the transmissions."""
+        T = len(items)
+        others: dict[int, int] = {}
+        sources: list[_Tx] = []
+        pair_tx: list[int] = []
+        pair_src: list[int] = []
+        for i, (_, overlapping) in enumerate(items):
+            for x in overlapping:
+                k = others.get(id(x))
+                if k is None:
+                    k = others[id(x)] = len(sources)
+                    sources.append(x)
+                pair_tx.append(i)
+                pair_src.append(k)
+        start = np.array([tx.start for tx, _ in items])
+        end = np.array([tx.end for tx, _ in items])
+        jams = [j for j in self._jammers if np.any((j.t_start < end) & (j.t_end > start))] \
+            if self._model.models_interference else []
+        if not sources and not jams:
+            return None, None, None  # nothing overlapped: no interference, nobody half-duplex
+        half_duplex = np.zeros((T, n), dtype=bool)
+        zeros = np.zeros((T, n))
+        if sources:
+            row = np.array([self._geo.index.get(x.src, -1) for x in sources], dtype=np.int64)[pair_src]
+            half_duplex[np.asarray(pair_tx)[row >= 0], row[row >= 0]] = True
         if not self._model.models_interference:
-            return np.zeros(k), np.zeros(k)
-        jams = [j for j in self._jammers if j.active_during(tx.start, tx.end)]
-        if not overlapping and not jams:
-            return np.zeros(k), np.zeros(k)
-        # The interference is piecewise constant between these edges; the frame
-        # is judged on its worst piece.
-        edges = {tx.start, tx.end}
-        for x in overlapping:
-            edges.update((max(x.start, tx.start), min(x.end, tx.end)))
-        for j in jams:
-            edges.update((max(j.t_start, tx.start), min(j.t_end, tx.end)))
-        e = np.array(sorted(edges))
-        lo, hi = e[:-1], e[1:]
-        keep = hi > lo
-        if not keep.any():
-            return np.zeros(k), np.zeros(k)
-        mid = 0.5 * (lo[keep] + hi[keep])
-        i_tx = np.zeros((mid.size, k))
-        for x in overlapping:
-            active = (x.start <= mid) & (mid < x.end)
-            p = self._model.rx_power_dbm(np.linalg.norm(rpos - x.pos, axis=1), self._shadow.get(x.src, known))
-            i_tx += np.outer(active, np.power(10.0, p / 10.0))
-        i_jam = np.zeros_like(i_tx)
-        for j in jams:
-            active = (j.t_start <= mid) & (mid < j.t_end)
-            p = self._model.jammer_rx_power_dbm(j, np.linalg.norm(rpos - np.array(j.position), axis=1))
-            i_jam += np.outer(active, np.power(10.0, p / 10.0))
-        return i_tx.max(axis=0), (i_tx + i_jam).max(axis=0)
+            return zeros, zeros, half_duplex
+        # Interference only rises when a source starts, so its worst piece of the airtime
+        # begins at the frame's start or at one of the overlapping starts.
+        k, J = len(sources), len(jams)
+        s_start = np.array([x.start for x in sources] + [j.t_start for j in jams])
+        s_end = np.array([x.end for x in sources] + [j.t_end for j in jams])
+        overlaps = np.zeros((T, k + J), dtype=bool)
+        overlaps[pair_tx, pair_src] = True
+        for m, j in enumerate(jams):
+            overlaps[:, k + m] = (j.t_start < end) & (j.t_end > start)
+        oi, os_ = np.nonzero(overlaps)
+        pt_tx = np.concatenate([np.arange(T), oi])
+        pt_t = np.concatenate([start, np.maximum(s_start[os_], start[oi])])
+        order = np.argsort(pt_tx, kind="stable")
+        pt_tx, pt_t = pt_tx[order], pt_t[order]
+        active = (overlaps[pt_tx] & (s_start <= pt_t[:, None]) & (pt_t[:, None] < s_end)
+                  & (pt_t < end[pt_tx])[:, None]).astype(float)
+        groups = np.searchsorted(pt_tx, np.arange(T))
+        if k:
+            _, dbm = self._rows(sources)
+            from_tx = active[:, :k] @ np.power(10.0, dbm / 10.0)
+        else:
+            from_tx = np.zeros((len(pt_t), n))
+        from_all = from_tx
+        if J:
+            jam_mw = np.array([np.power(10.0, self._model.jammer_rx_power_dbm(
+                j, np.linalg.norm(self._geo.xyz - np.array(j.position), axis=1)) / 10.0) for j in jams])
+            from_all = from_tx + active[:, k:] @ jam_mw
+        return (np.maximum.reduceat(from_tx, groups, axis=0), np.maximum.reduceat(from_all, groups, axis=0),
+                half_duplex)

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
 from swarmloc.faults import (ClearLoss, Cut, FaultError, GnssOff, GnssOn, Heal, JammerOff, JammerOn, Kill, Loss,
                              Partition, RadioOff, RadioOn, Restart, Restore, _Fault, inverse_of, nodes_named)
@@ -22,6 +23,10 @@ class Active:
         return {"id": self.id, "action": self.fault.action, "args": args, "since": self.since, "until": self.until}
 
 
+BLOCK_REASONS: tuple[str | None, ...] = (None, "radio-off", "fault", "partition")
+"""What the codes of FaultState.blocked_matrix stand for."""
+
+
 class FaultState:
     """The faults in force and the questions the radio asks about them."""
 
@@ -30,6 +35,8 @@ class FaultState:
         self.active: list[Active] = []
         self.log: list[dict] = []  # every fault applied or cleared, for the run directory
         self._next = 1
+        self.version = 0  # bumped by every change, so answers over all pairs are computed once per change
+        self._matrices: tuple[int, NDArray[np.int8], NDArray[np.float64]] | None = None
 
     # ---------------------------------------------------------------- changes
 
@@ -47,6 +54,7 @@ class FaultState:
             self.active.append(Active(self._next, f, t, until))
             self._next += 1
         self.log.append({"k": k, "t": t, "source": source, **f.model_dump(mode="json", exclude_none=True, exclude={"at"})})
+        self.version += 1
 
     def due(self, t: float) -> list[_Fault]:
         """Inverses of faults whose duration has run out by time t."""
@@ -92,6 +100,52 @@ class FaultState:
             if (f.node is None and f.link is None) or f.node in (src, dst) or (f.link and {src, dst} == set(f.link)):
                 keep *= 1.0 - f.probability
         return 1.0 - keep
+
+    def blocked_matrix(self) -> NDArray[np.int8]:
+        """blocked(ids[i], ids[j]) for every pair, as codes into BLOCK_REASONS."""
+        return self._pairs()[1]
+
+    def loss_matrix(self) -> NDArray[np.float64]:
+        """extra_loss(ids[i], ids[j]) for every pair."""
+        return self._pairs()[2]
+
+    def _pairs(self) -> tuple[int, NDArray[np.int8], NDArray[np.float64]]:
+        if self._matrices is None or self._matrices[0] != self.version:
+            self._matrices = (self.version, self._blocked_codes(), 1.0 - self._keep())
+        return self._matrices
+
+    def _blocked_codes(self) -> NDArray[np.int8]:
+        # Written from the weakest reason to the strongest, so each pair ends with the one blocked() gives.
+        index = {a: i for i, a in enumerate(self.ids)}
+        n = len(self.ids)
+        codes = np.zeros((n, n), np.int8)
+        for f in self._of(Partition):
+            side = np.array([_side(f, a) for a in self.ids])
+            codes[side[:, None] != side[None, :]] = BLOCK_REASONS.index("partition")
+        for f in self._of(Cut):
+            a, b = (index[v] for v in f.link)
+            codes[a, b] = BLOCK_REASONS.index("fault")
+            if f.direction == "both":
+                codes[b, a] = BLOCK_REASONS.index("fault")
+        off = np.isin(self.ids, [f.node for f in self._of(RadioOff)])
+        codes[off[:, None] | off[None, :]] = BLOCK_REASONS.index("radio-off")
+        return codes
+
+    def _keep(self) -> NDArray[np.float64]:
+        index = {a: i for i, a in enumerate(self.ids)}
+        n = len(self.ids)
+        keep = np.ones((n, n))
+        for f in self._of(Loss):
+            hit = np.zeros((n, n), bool)
+            if f.node is None and f.link is None:
+                hit[:] = True
+            if f.node is not None and f.node in index:
+                hit[index[f.node], :] = hit[:, index[f.node]] = True
+            if f.link and len(set(f.link)) == 2:
+                a, b = (index[v] for v in f.link)
+                hit[a, b] = hit[b, a] = True
+            keep[hit] *= 1.0 - f.probability
+        return keep
 
     def jammers(self, t: float) -> list[tuple[JammerOn, np.ndarray]]:
         """Active jammers with their position at time t (moving ones move from where they started)."""

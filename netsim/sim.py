@@ -14,13 +14,14 @@ Two ways to move frames, one per clock mode:
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections import Counter
 import numpy as np
 from pydantic import TypeAdapter, ValidationError
 
-from netsim.channel import ChannelConfig, Jammer, RadioMedium, TxFrame, UnitDisk
-from netsim.faults import FaultState
+from netsim.channel import DROP_REASONS, ChannelConfig, Jammer, Outcomes, RadioMedium, TxFrame, UnitDisk
+from netsim.faults import BLOCK_REASONS, FaultState
 from netsim.world import World, streams
 from swarmloc.faults import FaultError, _Fault
 from swarmloc.messages import LinkNack
@@ -35,6 +36,8 @@ def _pos3(p) -> np.ndarray:
     """A 2D (planar) or 3D position as 3D: planar robots and jammers sit at height 0."""
     p = np.asarray(p, float)
     return np.pad(p, (0, 3 - p.size))
+
+
 CHANNEL = TypeAdapter(ChannelConfig)
 
 
@@ -44,6 +47,78 @@ def channel_of(scenario: Scenario):
     except ValidationError as exc:
         lines = [f"  radio.{'.'.join(str(p) for p in e['loc'][1:])}: {e['msg']}" for e in exc.errors()]
         raise ScenarioError(f"{scenario.name}: invalid radio\n" + "\n".join(lines)) from None
+
+
+# Every reason a reception can fail, as small integers: the channel's codes (netsim.channel)
+# first, then the overlay's. "" (code 0) is a delivery.
+REASONS: tuple[str, ...] = ("", *DROP_REASONS, "down", "radio-off", "fault", "partition", "loss", "unknown")
+_CODE = {r: k for k, r in enumerate(REASONS)}
+_FROM_BLOCK = np.array([0 if r is None else _CODE[r] for r in BLOCK_REASONS], np.int8)
+
+
+def _direct_rx_ok() -> bool:
+    fields = tuple(f.name for f in dataclasses.fields(Rx))
+    return (fields == ("receiver", "t", "data", "nack", "src", "seq", "unicast") and not hasattr(Rx, "__slots__")
+            and not hasattr(Rx, "__post_init__"))
+
+
+# A frozen dataclass's __init__ sets each field through object.__setattr__; filling the
+# instance dict at once gives the same object (equal, hashable, same repr) for a third of
+# the cost, which matters at one delivery per frame and receiver. Only while RadioRx is the
+# plain frozen dataclass this assumes; otherwise its constructor.
+_DIRECT_RX = _direct_rx_ok()
+
+
+def _make_rx(receivers: list[int], times: list[float], frames: list[tuple[bytes, int, int, bool]],
+             frame_of: list[int]) -> list[Rx]:
+    """Deliveries: receivers[i] gets frames[frame_of[i]] (data, src, seq, unicast) at times[i]."""
+    if not _DIRECT_RX:
+        return [Rx(r, t, *_with_nack(frames[f])) for r, t, f in zip(receivers, times, frame_of)]
+    new, put = object.__new__, object.__setattr__
+    out = []
+    for r, t, f in zip(receivers, times, frame_of):
+        data, src, seq, unicast = frames[f]
+        rx = new(Rx)
+        put(rx, "__dict__", {"receiver": r, "t": t, "data": data, "nack": None, "src": src, "seq": seq,
+                             "unicast": unicast})
+        out.append(rx)
+    return out
+
+
+def _with_nack(frame: tuple[bytes, int, int, bool]) -> tuple:
+    data, src, seq, unicast = frame
+    return data, None, src, seq, unicast
+
+
+class RadioLog:
+    """Every reception attempt, stored as arrays per batch of receptions.
+
+    Iterates as (k, src, receiver, size, reason) tuples, reason "" if delivered.
+    """
+
+    def __init__(self) -> None:
+        self._parts: list[tuple[np.ndarray, ...]] = []
+        self._n = 0
+
+    def add(self, k: int, src: np.ndarray, receiver: np.ndarray, size: np.ndarray, code: np.ndarray) -> None:
+        if len(src):
+            self._parts.append((np.full(len(src), k, np.int64), src, receiver, size, code))
+            self._n += len(src)
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __iter__(self):
+        for k, src, receiver, size, code in self._parts:
+            yield from zip(k.tolist(), src.tolist(), receiver.tolist(), size.tolist(),
+                           [REASONS[c] for c in code.tolist()])
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        cols = [np.concatenate(c) for c in zip(*self._parts)] or [np.zeros(0, np.int64)] * 4 + [np.zeros(0, np.int8)]
+        k, src, receiver, size, code = cols
+        return {"k": k.astype(np.int64), "src": src.astype(np.int64), "receiver": receiver.astype(np.int64),
+                "size": size.astype(np.int64), "delivered": code == 0,
+                "reason": np.array(REASONS, dtype="U16")[code.astype(np.intp)]}
 
 
 class Simulation:
@@ -64,17 +139,56 @@ class Simulation:
         self.vt = 0.0  # modelled time of the next lockstep round
         self._uid = 0
         self._inflight: dict[int, list] = {}  # uid -> [frame, outcomes still to come]
-        self.delivered: Counter[tuple[int, int]] = Counter()
-        self.attempts: Counter[tuple[int, int]] = Counter()  # frames src -> receiver, whatever their fate
-        self.dropped: Counter[tuple[int, int, str]] = Counter()
-        self.last_heard: dict[tuple[int, int], float] = {}
-        self.last_sinr: dict[tuple[int, int], float] = {}  # SINR of the last frame src -> receiver
-        self.radio_log: list[tuple[int, int, int, int, str]] = []  # (k, src, receiver, size, drop reason or "")
-        self.link_log: list[tuple] = []  # per tick and pair: (k, a, b, snr_db, up, delivered, dropped)
+        # Per ordered pair of agents (rows: sender, columns: receiver, in self.ids order).
+        n = len(self.ids)
+        self._id_array = np.array(self.ids, np.int64)  # ascending (Scenario.agent_ids)
+        self._attempts = np.zeros((n, n), np.int64)  # frames src -> receiver, whatever their fate
+        self._delivered = np.zeros((n, n), np.int64)
+        self._dropped = np.zeros((n, n, len(REASONS)), np.int64)
+        self._unknown: Counter[tuple[int, int, str]] = Counter()  # frames from or to ids outside the swarm
+        self._last_heard = np.full((n, n), np.nan)
+        self._last_sinr = np.full((n, n), np.nan)  # SINR of the last frame src -> receiver
+        self._jam_cache: tuple[tuple, np.ndarray] | None = None
+        self._off: tuple[int, list[bool]] | None = None
+        self._index = {a: i for i, a in enumerate(self.ids)}
+        self.radio_log = RadioLog()
+        self.link_log: list[tuple[np.ndarray, ...]] = []  # per tick: (k, t, a, b, snr_db, up, delivered, dropped)
 
     @property
     def fault_log(self) -> list[dict]:
         return self.faults.log
+
+    # Per-pair counters as {(src, receiver): value}, built on demand from the arrays.
+    @property
+    def delivered(self) -> Counter[tuple[int, int]]:
+        return self._pair_counter(self._delivered)
+
+    @property
+    def attempts(self) -> Counter[tuple[int, int]]:
+        return self._pair_counter(self._attempts)
+
+    @property
+    def dropped(self) -> Counter[tuple[int, int, str]]:
+        out: Counter[tuple[int, int, str]] = Counter()
+        for i, j, c in zip(*(v.tolist() for v in np.nonzero(self._dropped))):
+            out[(self.ids[i], self.ids[j], REASONS[c])] = int(self._dropped[i, j, c])
+        return out + self._unknown
+
+    @property
+    def last_heard(self) -> dict[tuple[int, int], float]:
+        return self._pair_dict(self._last_heard)
+
+    @property
+    def last_sinr(self) -> dict[tuple[int, int], float]:
+        return self._pair_dict(self._last_sinr)
+
+    def _pair_counter(self, a: np.ndarray) -> Counter[tuple[int, int]]:
+        i, j = np.nonzero(a)
+        return Counter({(self.ids[x], self.ids[y]): v for x, y, v in zip(i.tolist(), j.tolist(), a[i, j].tolist())})
+
+    def _pair_dict(self, a: np.ndarray) -> dict[tuple[int, int], float]:
+        i, j = np.nonzero(~np.isnan(a))
+        return {(self.ids[x], self.ids[y]): v for x, y, v in zip(i.tolist(), j.tolist(), a[i, j].tolist())}
 
     # ---------------------------------------------------------------- clock
 
@@ -112,85 +226,187 @@ class Simulation:
 
     def exchange(self, frames: list[Tx]) -> list[Rx]:
         """Lockstep: one round of frames, offered together, resolved completely."""
-        out: list[Rx] = []
+        early: list[Rx] = []
+        offered: list[Outcomes] = []
         for tx in sorted(frames, key=lambda f: (f.src, f.seq)):
-            out += self.offer(tx, self.vt)
-        # Resolve event by event (advancing to infinity would leave the medium's clock there).
-        while (t := self.medium.next_event_time()) is not None:
-            out += self.advance(t)
+            nacks, drops = self._offer(tx, self.vt)
+            early += nacks
+            if drops is not None:
+                offered.append(drops)
+        out = self._resolve(Outcomes.concat([*offered, self.medium.run_to_idle()]), in_round_order=True)
+        if early:
+            out = sorted(early + out, key=lambda r: (r.t, r.receiver, r.nack is not None))
         if out:
-            self.vt = max(self.vt, max(r.t for r in out))
-        return sorted(out, key=lambda r: (r.t, r.receiver, r.nack is not None))
+            self.vt = max(self.vt, out[-1].t)  # sorted by time
+        return out
 
     def offer(self, tx: Tx, t: float) -> list[Rx]:
+        nacks, drops = self._offer(tx, t)
+        return nacks + self._resolve(drops) if drops is not None else nacks
+
+    def _offer(self, tx: Tx, t: float) -> tuple[list[Rx], Outcomes | None]:
+        """NACKs decided before the medium (unknown ids, radio off), and the medium's immediate drops."""
         if tx.src not in self.world.pos or (tx.dst is not None and (tx.dst not in self.world.pos or tx.dst == tx.src)):
-            self.dropped[(tx.src, tx.dst if tx.dst is not None else -1, "unknown")] += 1
-            return self._nack(tx, t, "unknown") if tx.dst is not None else []
-        receivers = [tx.dst] if tx.dst is not None else [a for a in self.ids if a != tx.src]
-        if self.faults.blocked(tx.src, tx.src) == "radio-off":
+            self._unknown[(tx.src, tx.dst if tx.dst is not None else -1, "unknown")] += 1
+            return (self._nack(tx, t, "unknown") if tx.dst is not None else []), None
+        i = self._index[tx.src]
+        if self._radio_off()[i]:
             # A radio that is off does not even transmit (and so interferes with nobody).
-            for r in receivers:
-                self._drop(tx, r, "radio-off")
-            return self._nack(tx, t, "radio-off") if tx.dst is not None else []
+            receivers = np.array([self._index[tx.dst]] if tx.dst is not None else
+                                 [j for j in range(len(self.ids)) if j != i], np.int64)
+            k = len(receivers)
+            code = np.full(k, _CODE["radio-off"], np.int8)
+            off = Outcomes(np.zeros(k, np.int64), np.full(k, tx.src, np.int64), self._id_array[receivers],
+                           np.full(k, t), code, np.full(k, np.nan))
+            self._count(off, np.full(k, i), receivers, code, np.full(k, len(tx.data), np.int64))
+            return (self._nack(tx, t, "radio-off") if tx.dst is not None else []), None
         self._uid += 1
-        self._inflight[self._uid] = [tx, len(receivers)]
-        outcomes = self.medium.offer(TxFrame(self._uid, tx.src, tx.dst, len(tx.data)), t)
-        return self._resolve(outcomes)
+        self._inflight[self._uid] = [tx, 1 if tx.dst is not None else len(self.ids) - 1]
+        return [], self.medium.offer_arrays(TxFrame(self._uid, tx.src, tx.dst, len(tx.data)), t)
 
     def advance(self, t: float) -> list[Rx]:
-        return self._resolve(self.medium.advance(t))
+        return self._resolve(self.medium.advance_arrays(t))
+
+    def _radio_off(self) -> list[bool]:
+        """Per agent (self.ids order), whether its radio is off."""
+        if self._off is None or self._off[0] != self.faults.version:
+            codes = self.faults.blocked_matrix().diagonal()
+            self._off = (self.faults.version, (codes == BLOCK_REASONS.index("radio-off")).tolist())
+        return self._off[1]
 
     def next_event_time(self) -> float | None:
         return self.medium.next_event_time()
 
-    def _resolve(self, outcomes) -> list[Rx]:
-        out: list[Rx] = []
-        for o in outcomes:
-            entry = self._inflight[o.uid]
-            tx = entry[0]
-            entry[1] -= 1
-            if entry[1] == 0:
-                del self._inflight[o.uid]
-            reason = o.reason
-            if np.isfinite(o.sinr_db):
-                self.last_sinr[(tx.src, o.receiver)] = float(o.sinr_db)
-            if o.delivered:
-                reason = ("down" if o.receiver in self.down else None) or self.faults.blocked(tx.src, o.receiver) \
-                    or self._jammed(o.receiver)
-                if reason is None:
-                    p = self.faults.extra_loss(tx.src, o.receiver)
-                    if p > 0 and self._uniform(tx, o.receiver) < p:
-                        reason = "loss"
-            if reason is None:
-                self.attempts[(tx.src, o.receiver)] += 1
-                self.delivered[(tx.src, o.receiver)] += 1
-                self.last_heard[(tx.src, o.receiver)] = o.t
-                self.radio_log.append((self.k, tx.src, o.receiver, len(tx.data), ""))
-                out.append(Rx(o.receiver, o.t, data=tx.data, src=tx.src, seq=tx.seq, unicast=tx.dst is not None))
-            else:
-                self._drop(tx, o.receiver, reason)
-                if tx.dst is not None:
-                    out += self._nack(tx, o.t, reason)
-        return out
+    def _agent(self, ids: np.ndarray) -> np.ndarray:
+        return np.searchsorted(self._id_array, ids)
 
-    def _uniform(self, tx: Tx, receiver: int) -> float:
+    def _frames_of(self, uid: np.ndarray) -> tuple[list[Tx], np.ndarray]:
+        """The frames behind these outcomes, and each outcome's index among them."""
+        lo = int(uid.min())
+        span = int(uid.max()) - lo + 1
+        if span <= 4 * len(uid) + 64:  # uids are consecutive in a round: count them, no sort
+            counts = np.bincount(uid - lo, minlength=span)
+            present = np.flatnonzero(counts)
+            index = np.zeros(span, np.int64)
+            index[present] = np.arange(present.size)
+            uids, frame_of, counts = present + lo, index[uid - lo], counts[present]
+        else:
+            uids, frame_of, counts = np.unique(uid, return_inverse=True, return_counts=True)
+        txs: list[Tx] = []
+        for u, c in zip(uids.tolist(), counts.tolist()):
+            entry = self._inflight[u]
+            txs.append(entry[0])
+            entry[1] -= c
+            if entry[1] <= 0:
+                del self._inflight[u]
+        return txs, frame_of.reshape(-1)
+
+    def _resolve(self, out: Outcomes, in_round_order: bool = False) -> list[Rx]:
+        """Overlay down agents and faults on the channel's outcomes, count them, and make the
+        deliveries and NACKs: in outcome order, or sorted as a lockstep round returns them."""
+        if not len(out):
+            return []
+        txs, frame_of = self._frames_of(out.uid)
+        s, r = self._agent(out.src), self._agent(out.receiver)
+        code = out.reason.copy()
+        ok = np.flatnonzero(code == 0)
+        if ok.size:
+            code[ok] = self._overlay(txs, frame_of[ok], s[ok], r[ok])
+        sizes = np.array([len(tx.data) for tx in txs], np.int64)
+        self._count(out, s, r, code, sizes[frame_of])
+        return self._deliveries(out, code, txs, frame_of, in_round_order)
+
+    def _overlay(self, txs: list[Tx], frame: np.ndarray, s: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """Why a frame the channel delivered is lost all the same (0: it is not)."""
+        blocked, loss = self._fault_tables()
+        code = np.zeros(len(r), np.int8) if blocked is None else _FROM_BLOCK[blocked[s, r]]
+        if self.down:
+            code[np.isin(self._id_array, list(self.down))[r]] = _CODE["down"]
+        jammed = self._jammed_mask()
+        if jammed.any():
+            code[(code == 0) & jammed[r]] = _CODE["jammed"]
+        if loss is not None:
+            p = loss[s, r]
+            lossy = np.flatnonzero((code == 0) & (p > 0))
+            if lossy.size:
+                u = self._uniform(txs, frame[lossy], r[lossy])
+                code[lossy[u < p[lossy]]] = _CODE["loss"]
+        return code
+
+    def _fault_tables(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The faults' blocked codes and extra loss per pair, None where no pair has any."""
+        blocked, loss = self.faults.blocked_matrix(), self.faults.loss_matrix()
+        return (blocked if blocked.any() else None), (loss if loss.any() else None)
+
+    def _uniform(self, txs: list[Tx], frame: np.ndarray, receiver: np.ndarray) -> np.ndarray:
         # Keyed by the frame, not drawn in arrival order: the same frame meets the same fate
         # whichever order frames reach netsim, so lockstep stays deterministic without rounds.
-        return float(np.random.default_rng([self.loss_seed, self.k, tx.src, tx.seq, receiver]).random())
+        u = np.empty(len(frame))
+        for f in np.unique(frame).tolist():
+            tx = txs[f]
+            at = frame == f
+            u[at] = np.random.default_rng([self.loss_seed, self.k, tx.src, tx.seq]).random(len(self.ids))[receiver[at]]
+        return u
 
-    def _jammed(self, receiver: int) -> str | None:
-        # Unit disk has no notion of power: a jammer there silences receivers within its radius.
-        if not isinstance(self.channel, UnitDisk):
-            return None
-        for f, pos in self.faults.jammers(self.t):
-            if np.linalg.norm(_pos3(self.world.pos[receiver]) - _pos3(pos)) <= f.radius_m:
-                return "jammed"
-        return None
+    def _jammed_mask(self) -> np.ndarray:
+        """Receivers a jammer silences: unit disk has no notion of power, so a jammer there
+        silences receivers within its radius."""
+        key = (self.faults.version, self.k)
+        if self._jam_cache is None or self._jam_cache[0] != key:
+            jammed = np.zeros(len(self.ids), bool)
+            if isinstance(self.channel, UnitDisk):
+                where = np.array([_pos3(self.world.pos[a]) for a in self.ids]).reshape(-1, 3)
+                for f, pos in self.faults.jammers(self.t):
+                    jammed |= np.linalg.norm(where - _pos3(pos), axis=1) <= f.radius_m
+            self._jam_cache = (key, jammed)
+        return self._jam_cache[1]
 
-    def _drop(self, tx: Tx, receiver: int, reason: str) -> None:
-        self.attempts[(tx.src, receiver)] += 1
-        self.dropped[(tx.src, receiver, reason)] += 1
-        self.radio_log.append((self.k, tx.src, receiver, len(tx.data), reason))
+    def _count(self, out: Outcomes, s: np.ndarray, r: np.ndarray, code: np.ndarray, size: np.ndarray) -> None:
+        n = len(self.ids)
+        pair = s * n + r
+        tries = np.bincount(pair, minlength=n * n)
+        self._attempts += tries.reshape(n, n)
+        repeated = bool(tries.max() > 1)
+        ok = code == 0
+        self._delivered += np.bincount(pair[ok], minlength=n * n).reshape(n, n)
+        if not ok.all():
+            np.add.at(self._dropped, (s[~ok], r[~ok], code[~ok]), 1)
+        judged = np.isfinite(out.sinr_db)
+        self._keep_last(self._last_sinr, pair[judged], out.sinr_db[judged], repeated)
+        self._keep_last(self._last_heard, pair[ok], out.t[ok], repeated)
+        self.radio_log.add(self.k, out.src, out.receiver, size, code)
+
+    @staticmethod
+    def _keep_last(a: np.ndarray, pair: np.ndarray, v: np.ndarray, repeated: bool) -> None:
+        # The last value per pair in outcome order: numpy leaves repeated fancy assignment unordered.
+        if repeated:
+            _, first_from_end = np.unique(pair[::-1], return_index=True)
+            last = len(pair) - 1 - first_from_end
+            pair, v = pair[last], v[last]
+        a.flat[pair] = v
+
+    def _deliveries(self, out: Outcomes, code: np.ndarray, txs: list[Tx], frame_of: np.ndarray,
+                    in_round_order: bool) -> list[Rx]:
+        got = np.flatnonzero(code == 0)
+        nacked = np.flatnonzero(code != 0)
+        if nacked.size:
+            unicast = np.array([tx.dst is not None for tx in txs])
+            nacked = nacked[unicast[frame_of[nacked]]]
+        if in_round_order:  # by (t, receiver, NACK last), ties in outcome order
+            got = got[np.lexsort((out.receiver[got], out.t[got]))]
+        frames = [(tx.data, tx.src, tx.seq, tx.dst is not None) for tx in txs]
+        rx = _make_rx(out.receiver[got].tolist(), out.t[got].tolist(), frames, frame_of[got].tolist())
+        if not nacked.size:
+            return rx
+        nacks = [Rx(src, t, nack=LinkNack(txs[f].seq, txs[f].dst, REASONS[c][:32]))
+                 for src, t, f, c in zip(out.src[nacked].tolist(), out.t[nacked].tolist(),
+                                         frame_of[nacked].tolist(), code[nacked].tolist())]
+        # Merge: by (t, receiver, NACK last) in a round, else in outcome order.
+        if in_round_order:
+            return sorted(rx + nacks, key=lambda x: (x.t, x.receiver, x.nack is not None))
+        at = np.concatenate([got, nacked])
+        both = rx + nacks
+        return [both[i] for i in np.argsort(at, kind="stable").tolist()]
 
     @staticmethod
     def _nack(tx: Tx, t: float, reason: str) -> list[Rx]:
@@ -201,48 +417,62 @@ class Simulation:
     def link_state(self, a: int, b: int) -> tuple[bool, float, str]:
         """(up, distance, reason if down) for a -> b: physics and faults, no random draw."""
         info = self.medium.link(a, b)
-        blocked = ("down" if self.down & {a, b} else None) or self.faults.blocked(a, b) or self._jammed(b)
+        blocked = ("down" if self.down & {a, b} else None) or self.faults.blocked(a, b) \
+            or ("jammed" if self._jammed_mask()[self._index[b]] else None)
         if blocked:
             return False, info.distance_m, blocked
         return info.up, info.distance_m, "" if info.up else "distance"
 
+    def _directed_links(self) -> tuple[np.ndarray, ...]:
+        """link_state for every ordered pair: (up, distance, reason code), and the channel's SNR and PDR."""
+        ids, dist, _, snr, pdr, up = self.medium.link_arrays()
+        at = np.searchsorted(ids, self._id_array)
+        pick = np.ix_(at, at)
+        dist, snr, pdr, up = dist[pick], snr[pick], pdr[pick], up[pick]
+        down = np.isin(self._id_array, list(self.down))
+        blocked = np.where(down[:, None] | down[None, :], _CODE["down"], _FROM_BLOCK[self.faults.blocked_matrix()])
+        blocked[(blocked == 0) & self._jammed_mask()[None, :]] = _CODE["jammed"]
+        reason = np.where(blocked != 0, blocked, np.where(up, 0, _CODE["distance"]))
+        return reason == 0, dist, reason, snr, pdr
+
+    def _pair_arrays(self) -> dict[str, np.ndarray]:
+        """The link table's columns, one entry per unordered pair a < b."""
+        up, dist, reason, snr, pdr = self._directed_links()
+        a, b = np.triu_indices(len(self.ids), 1)
+        dlv = self._delivered[a, b] + self._delivered[b, a]
+        total = self._attempts[a, b] + self._attempts[b, a]
+        with np.errstate(invalid="ignore"):
+            return {"a": self._id_array[a], "b": self._id_array[b], "up": up[a, b] & up[b, a],
+                    "distance": dist[a, b], "reason": np.where(reason[a, b] != 0, reason[a, b], reason[b, a]),
+                    "snr_db": snr[a, b], "sinr_db": np.fmin(self._last_sinr[a, b], self._last_sinr[b, a]),
+                    "pdr_model": pdr[a, b], "delivered": dlv, "dropped": total - dlv, "total": total,
+                    "last_heard": np.fmax(self._last_heard[a, b], self._last_heard[b, a])}
+
     def link_table(self) -> list[dict]:
-        rows = []
-        for i, a in enumerate(self.ids):
-            for b in self.ids[i + 1:]:
-                info = self.medium.link(a, b)
-                up_ab, dist, reason_ab = self.link_state(a, b)
-                up_ba, _, reason_ba = self.link_state(b, a)
-                dlv = self.delivered[(a, b)] + self.delivered[(b, a)]
-                total = self.attempts[(a, b)] + self.attempts[(b, a)]
-                heard = [self.last_heard[d] for d in ((a, b), (b, a)) if d in self.last_heard]
-                sinr = [self.last_sinr[d] for d in ((a, b), (b, a)) if d in self.last_sinr]
-                rows.append({"a": a, "b": b, "up": up_ab and up_ba, "distance": dist,
-                             "reason": reason_ab or reason_ba, "snr_db": float(info.snr_db),
-                             "sinr_db": min(sinr) if sinr else None,
-                             "pdr_model": float(info.pdr), "delivered": dlv, "dropped": total - dlv,
-                             "delivery_ratio": dlv / total if total else None,
-                             "last_heard": max(heard) if heard else None})
-        return rows
+        c = self._pair_arrays()
+        none_if_nan = lambda v: None if v != v else v  # noqa: E731
+        return [{"a": a, "b": b, "up": up, "distance": d, "reason": REASONS[why], "snr_db": snr,
+                 "sinr_db": none_if_nan(sinr), "pdr_model": pdr, "delivered": dlv, "dropped": drp,
+                 "delivery_ratio": dlv / total if total else None, "last_heard": none_if_nan(heard)}
+                for a, b, up, d, why, snr, sinr, pdr, dlv, drp, total, heard in zip(
+                    *(c[f].tolist() for f in ("a", "b", "up", "distance", "reason", "snr_db", "sinr_db", "pdr_model",
+                                              "delivered", "dropped", "total", "last_heard")))]
 
     def _record_links(self) -> None:
-        for row in self.link_table():
-            self.link_log.append((self.k, self.t, row["a"], row["b"], row["snr_db"], row["up"], row["delivered"],
-                                  row["dropped"]))
+        c = self._pair_arrays()
+        self.link_log.append((np.full(len(c["a"]), self.k, np.int64), np.full(len(c["a"]), self.t), c["a"], c["b"],
+                              c["snr_db"], c["up"], c["delivered"], c["dropped"]))
 
     def radio_arrays(self) -> dict[str, np.ndarray]:
         """Every reception attempt, the link table per tick and every fault (radio.npz)."""
-        rows, links = self.radio_log, self.link_log
         faults = self.faults.log
+        links = [np.concatenate(c) for c in zip(*self.link_log)] if self.link_log else \
+            [np.zeros(0, t) for t in (np.int64, float, np.int64, np.int64, float, bool, np.int64, np.int64)]
+        names = ("link_k", "link_t", "link_a", "link_b", "link_snr_db", "link_up", "link_delivered", "link_dropped")
+        types = (np.int64, float, np.int64, np.int64, float, bool, np.int64, np.int64)
         return {
-            "k": np.array([r[0] for r in rows], np.int64), "src": np.array([r[1] for r in rows], np.int64),
-            "receiver": np.array([r[2] for r in rows], np.int64), "size": np.array([r[3] for r in rows], np.int64),
-            "delivered": np.array([r[4] == "" for r in rows], bool), "reason": np.array([r[4] for r in rows], dtype="U16"),
-            "link_k": np.array([r[0] for r in links], np.int64), "link_t": np.array([r[1] for r in links], float),
-            "link_a": np.array([r[2] for r in links], np.int64), "link_b": np.array([r[3] for r in links], np.int64),
-            "link_snr_db": np.array([r[4] for r in links], float), "link_up": np.array([r[5] for r in links], bool),
-            "link_delivered": np.array([r[6] for r in links], np.int64),
-            "link_dropped": np.array([r[7] for r in links], np.int64),
+            **self.radio_log.arrays(),
+            **{name: np.asarray(col, dtype) for name, col, dtype in zip(names, links, types)},
             "fault_t": np.array([f["t"] for f in faults], float),
             "fault_k": np.array([f["k"] for f in faults], np.int64),
             "fault_action": np.array([f["action"] for f in faults], dtype="U16"),
@@ -251,6 +481,9 @@ class Simulation:
 
     def radio_summary(self) -> dict:
         reasons: Counter[str] = Counter()
-        for (_, _, why), n in self.dropped.items():
+        totals = self._dropped.sum(axis=(0, 1))
+        for c in np.flatnonzero(totals).tolist():
+            reasons[REASONS[c]] = int(totals[c])
+        for (_, _, why), n in self._unknown.items():
             reasons[why] += n
-        return {"delivered": sum(self.delivered.values()), "dropped": dict(reasons)}
+        return {"delivered": int(self._delivered.sum()), "dropped": dict(reasons)}
