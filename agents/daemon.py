@@ -230,6 +230,9 @@ class AgentDaemon:
             elif attachment is not None and len(self.sensor_lag) < 100_000:
                 self.sensor_lag.append(time.monotonic() - attachment)
             before = self.node.k
+            # The last tick's final estimate goes out before the node moves on, even when inputs
+            # kept the queue from emptying (estimates are otherwise published when it is empty).
+            self._publish_estimate()
             sends = fired + self.node.step(env.body)
             if self.node.k == env.body.k:
                 self.ticks += 1
