@@ -221,13 +221,113 @@ def role_router(a) -> None:
         session.close()
 
 
+def role_relay(a) -> None:
+    """A bare Python relay: a router session (as netsim's) that subscribes to <KEY>/in and, from
+    its main loop, puts every frame on <KEY>/out with its attachment: netsim's hop minus netsim."""
+    import zenoh
+
+    q: queue.SimpleQueue = queue.SimpleQueue()
+    session = zenoh.open(zconfig("router", listen=[a.listen]))
+    pub = session.declare_publisher(f"{KEY}/out", congestion_control=zenoh.CongestionControl.BLOCK,
+                                    reliability=zenoh.Reliability.RELIABLE)
+    session.declare_subscriber(f"{KEY}/in", lambda s: q.put((s.payload.to_bytes(), s.attachment)))
+    print("ready", flush=True)
+    deadline = time.monotonic() + a.timeout
+    try:
+        while time.monotonic() < deadline:
+            try:
+                data, att = q.get(timeout=0.5)
+            except queue.Empty:
+                continue
+            pub.put(data, attachment=att.to_bytes() if att is not None else None)
+    finally:
+        session.close()
+
+
+def role_agent_pub(a) -> None:
+    """Agent 1 of a netsim swarm, reduced to its radio: alive token, then --count unicast frames
+    to agent 2 on radio/tx/1, numbered as the daemon numbers them, with its send-time attachment."""
+    import zenoh
+
+    from swarmloc import wire
+    from swarmloc.messages import Beacon
+
+    import numpy as np
+
+    keys = wire.Keys(a.swarm)
+    session = zenoh.open(zconfig("client", connect=[a.connect]))
+    clock = queue.SimpleQueue()
+    session.declare_subscriber(keys.clock, lambda s: clock.put(1))
+    pub = session.declare_publisher(keys.radio_tx(1), **wire.publisher_options(zenoh))
+    token = session.liveliness().declare_token(keys.alive(1))
+    try:
+        clock.get(timeout=30)  # netsim ticks once both agents are alive
+        pad = max(0, a.size - len(wire.encode(Beacon(0, np.zeros(2), np.eye(2), {}), 1, 1, 2)))
+        seq = 0
+
+        def send(k: int) -> None:
+            nonlocal seq
+            seq += 1
+            msg = Beacon(k, np.zeros(2), np.eye(2), {i: 0 for i in range(pad // 3)})
+            pub.put(wire.encode(msg, 1, seq, 2), attachment=wire.encode_send_time(time.perf_counter()))
+
+        for _ in range(20):  # warm-up, dropped by the receiver (k = 0)
+            send(0)
+            time.sleep(0.01)
+        time.sleep(0.2)
+        nxt = time.perf_counter()
+        for i in range(a.count):
+            send(i + 1)
+            nxt += a.interval
+            delay = nxt - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+        time.sleep(0.5)
+    finally:
+        token.undeclare()
+        session.close()
+
+
+def role_agent_sub(a) -> None:
+    """Agent 2 of a netsim swarm, reduced to its radio: alive token, and the hop latency of every
+    frame on radio/rx/2 (delivery attachment) taken when its loop picks the frame up."""
+    import zenoh
+
+    from swarmloc import wire
+
+    keys = wire.Keys(a.swarm)
+    q: queue.SimpleQueue = queue.SimpleQueue()
+    session = zenoh.open(zconfig("client", connect=[a.connect]))
+    session.declare_subscriber(keys.radio_rx(2), lambda s: q.put((s.payload.to_bytes(), s.attachment)))
+    token = session.liveliness().declare_token(keys.alive(2))
+    print("ready", flush=True)
+    lat: list[float] = []
+    deadline = time.monotonic() + a.timeout
+    try:
+        while len(lat) < a.count and time.monotonic() < deadline:
+            try:
+                data, att = q.get(timeout=0.5)
+            except queue.Empty:
+                continue
+            now = time.perf_counter()
+            got = wire.decode_delivery(att.to_bytes() if att is not None else None)
+            if got is None or got[1] is None:
+                continue
+            if wire.decode(data).body.k >= 1:
+                lat.append(now - got[1])
+    finally:
+        token.undeclare()
+        session.close()
+    Path(a.out).write_text(json.dumps({"lat_s": lat}))
+
+
 def role_sub(a) -> None:
     """Subscriber: callback enqueues; the loop takes the latency on pick-up; results to --out as JSON."""
     import zenoh
 
     q: queue.SimpleQueue = queue.SimpleQueue()
     session = zenoh.open(zconfig(a.mode, listen=[a.listen] if a.listen else [], connect=[a.connect] if a.connect else []))
-    sub = session.declare_subscriber(KEY, lambda s: q.put((s.payload.to_bytes(), s.attachment)))
+    sub = session.declare_subscriber(a.key, lambda s: q.put((s.payload.to_bytes(), s.attachment)))
     print("ready", flush=True)
     lat: list[float] = []
     deadline = time.monotonic() + a.timeout
@@ -255,7 +355,7 @@ def role_pub(a) -> None:
     import zenoh
 
     session = zenoh.open(zconfig(a.mode, listen=[a.listen] if a.listen else [], connect=[a.connect] if a.connect else []))
-    pub = session.declare_publisher(KEY, congestion_control=zenoh.CongestionControl.BLOCK,
+    pub = session.declare_publisher(a.key, congestion_control=zenoh.CongestionControl.BLOCK,
                                     reliability=zenoh.Reliability.RELIABLE)
     try:
         deadline = time.monotonic() + 20.0
@@ -349,10 +449,32 @@ def run_direct(procs: Procs, kind: str, tmp: Path, tag: str, count: int, size: i
     res = tmp / f"{tag}.json"
     started: list[subprocess.Popen] = []
     timeout = count * interval + 30.0
+    sub_role, pub_role = "_sub", "_pub"
     try:
         if kind == "peer":
             sub_args = ["--mode", "peer", "--listen", endpoint]
             pub_args = ["--mode", "peer", "--connect", endpoint]
+        elif kind == "relay":
+            relay = procs.start([PY, str(HERE), "_relay", "--listen", endpoint, "--timeout", str(timeout + 30)],
+                                tmp / f"{tag}.relay.log")
+            started.append(relay)
+            if not wait_listening(port, relay):
+                raise RuntimeError(f"relay did not start: {(tmp / f'{tag}.relay.log').read_text()[-2000:]}")
+            sub_args = ["--mode", "client", "--connect", endpoint, "--key", f"{KEY}/out"]
+            pub_args = ["--mode", "client", "--connect", endpoint, "--key", f"{KEY}/in"]
+        elif kind == "netsim":
+            # netsim routing between two processes that are an agent's radio and nothing else:
+            # the same pub/sub pacing as the other direct paths, netsim's relay in the middle.
+            scen = tmp / f"{tag}.yaml"
+            scen.write_text(scenario_yaml(2, "realtime", 0.1, count * interval + 15.0))
+            swarm = f"{tag}x"
+            net = procs.start([PY, "-m", "netsim", str(scen), "--swarm", swarm, "--listen", endpoint],
+                              tmp / f"{tag}.netsim.log", cwd=HERE.parent.parent)
+            started.append(net)
+            if not wait_listening(port, net):
+                raise RuntimeError(f"netsim did not start: {(tmp / f'{tag}.netsim.log').read_text()[-2000:]}")
+            sub_role, pub_role = "_asub", "_apub"
+            sub_args = pub_args = ["--connect", endpoint, "--swarm", swarm]
         else:
             router = procs.start([PY, str(HERE), "_router", "--listen", endpoint, "--timeout", str(timeout + 30)],
                                  tmp / f"{tag}.router.log")
@@ -361,14 +483,14 @@ def run_direct(procs: Procs, kind: str, tmp: Path, tag: str, count: int, size: i
                 raise RuntimeError(f"router did not start: {(tmp / f'{tag}.router.log').read_text()[-2000:]}")
             sub_args = pub_args = ["--mode", "client", "--connect", endpoint]
         sub_log = tmp / f"{tag}.sub.log"
-        sub = procs.start([PY, str(HERE), "_sub", *sub_args, "--count", str(count), "--timeout", str(timeout),
+        sub = procs.start([PY, str(HERE), sub_role, *sub_args, "--count", str(count), "--timeout", str(timeout),
                            "--out", str(res)], sub_log)
         started.append(sub)
         if not wait_line(sub_log, "ready", sub):
             raise RuntimeError(f"subscriber did not start: {sub_log.read_text()[-2000:]}")
         if kind == "peer" and not wait_listening(port, sub):
             raise RuntimeError("subscriber is not listening")
-        pub = procs.start([PY, str(HERE), "_pub", *pub_args, "--count", str(count), "--size", str(size),
+        pub = procs.start([PY, str(HERE), pub_role, *pub_args, "--count", str(count), "--size", str(size),
                            "--interval", str(interval), "--timeout", str(timeout)], tmp / f"{tag}.pub.log")
         started.append(pub)
         if procs.wait(sub, timeout + 10) is None:
@@ -393,7 +515,13 @@ PATHS = [
     ("router-fast", "Zenoh client -> router -> client, a frame every {fast} ms"),
     ("peer-tick", "Zenoh peer to peer, a frame every dt = {tick} ms"),
     ("router-tick", "Zenoh client -> router -> client, a frame every dt = {tick} ms"),
+    ("relay-fast", "bare Python relay (router session; subscribe, put), a frame every {fast} ms"),
+    ("netsim-fast", "netsim's relay alone (real time; two radio-only agents), a frame every {fast} ms"),
+    ("relay-tick", "bare Python relay (router session; subscribe, put), a frame every dt = {tick} ms"),
+    ("netsim-tick", "netsim's relay alone (real time; two radio-only agents), a frame every dt = {tick} ms"),
 ]
+# Issue 16's hop target: netsim's added latency against a bare relay's, same pacing, same run.
+RELAY_TARGET = [("netsim-fast", "relay-fast", "router-fast"), ("netsim-tick", "relay-tick", "router-tick")]
 # (netsim path, direct path it is compared with): same pacing regime (hot back-to-back vs once a tick).
 DIFFS = [("realtime", "router-tick"), ("realtime", "peer-tick"), ("lockstep", "router-fast"), ("lockstep", "peer-fast")]
 
@@ -406,7 +534,10 @@ def main() -> None:
     p.add_argument("--duration", type=float, default=30.0, help="simulated = wall seconds of each real-time run")
     p.add_argument("--count", type=int, default=1000, help="frames per direct-path run")
     p.add_argument("--interval", type=float, default=0.002, help="s between frames on the direct paths")
+    p.add_argument("--paths", default=",".join(k for k, _ in PATHS), help="comma-separated subset of: "
+                   + ", ".join(k for k, _ in PATHS))
     a = p.parse_args()
+    chosen = [(k, label) for k, label in PATHS if k in a.paths.split(",")]
     load_start = os.getloadavg()[0]
     code_start = code_version()
     procs = Procs()
@@ -428,7 +559,7 @@ def main() -> None:
         budget = a.duration + 90.0
         try:
             for rep in range(a.repeat):
-                for key, _ in PATHS:
+                for key, _ in chosen:
                     name = f"r{rep}-{key}"
                     t0 = time.monotonic()
                     if key in ("realtime", "lockstep"):
@@ -460,21 +591,30 @@ def main() -> None:
           f"1-min load average {load_start:.1f} at start, {load_end:.1f} at end (other work shares the machine).\n")
     print(f"netsim runs: {a.agents} agents (UKF-DCL), unit disk with latency_s 0, dt {a.dt} s, {a.duration:g} s per real-time "
           f"run at speed 1; hop = median of the agents' medians, p99 = largest agent p99. Direct paths: frames of "
-          f"{size} B (median size of the frames the agents sent, which range {min(sizes)}-{max(sizes)} B), either {a.count} "
+          f"{size or 91} B ({f'median size of the frames the agents sent, which range {min(sizes)}-{max(sizes)} B' if sizes else 'a typical beacon'}), either {a.count} "
           f"every {a.interval * 1e3:g} ms (processes kept hot, like lockstep) or {int(round(a.duration / a.dt))} every dt "
           f"(processes idle between frames, like real time). "
           f"{a.repeat} repetitions, each running every path in turn.\n")
     print("| path | " + " | ".join(f"rep {i + 1} median / p99 (us)" for i in range(a.repeat)) + " | **median** (us) | **p99** (us) |")
     print("|---|" + "---|" * a.repeat + "---|---|")
-    for key, label in PATHS:
+    for key, label in chosen:
         label = label.format(fast=f"{a.interval * 1e3:g}", tick=f"{a.dt * 1e3:g}")
         cells = [f"{r['median_us']:,.0f} / {r['p99_us']:,.0f}" for r in rows[key]]
         print(f"| {label} | " + " | ".join(cells) + f" | **{med[key]['median_us']:,.0f}** | **{med[key]['p99_us']:,.0f}** |")
     print()
     for key, base in DIFFS:
+        if key not in med or base not in med:
+            continue
         d_med = med[key]["median_us"] - med[base]["median_us"]
         d_p99 = med[key]["p99_us"] - med[base]["p99_us"]
         print(f"- added by netsim ({key} minus {base}): median {d_med:+,.0f} us, p99 {d_p99:+,.0f} us")
+    for key, relay, base in RELAY_TARGET:
+        if all(k in med for k in (key, relay, base)):
+            added = {f: med[key][f] - med[base][f] for f in ("median_us", "p99_us")}
+            bare = {f: med[relay][f] - med[base][f] for f in ("median_us", "p99_us")}
+            print(f"- netsim against a bare relay ({key} vs {relay}, each minus {base}): added median {added['median_us']:+,.0f} "
+                  f"us vs {bare['median_us']:+,.0f} us (ratio {added['median_us'] / bare['median_us']:.2f}; target <= 1.5), "
+                  f"p99 {added['p99_us']:+,.0f} vs {bare['p99_us']:+,.0f} us")
     for key, vals in internal.items():
         if vals:
             print(f"- netsim internal ({key}; its callback -> its put, per repetition median / p99): "
@@ -493,9 +633,12 @@ if __name__ == "__main__":
         cp.add_argument("--interval", type=float, default=0.002)
         cp.add_argument("--timeout", type=float, default=60.0)
         cp.add_argument("--out", default="")
+        cp.add_argument("--key", default=KEY)
+        cp.add_argument("--swarm", default="bench")
         ca = cp.parse_args(sys.argv[2:])
-        if role == "_router":
+        if role in ("_router", "_relay"):
             signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
-        {"_router": role_router, "_sub": role_sub, "_pub": role_pub}[role](ca)
+        {"_router": role_router, "_relay": role_relay, "_sub": role_sub, "_pub": role_pub,
+         "_apub": role_agent_pub, "_asub": role_agent_sub}[role](ca)
     else:
         main()
