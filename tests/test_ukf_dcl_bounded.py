@@ -18,7 +18,7 @@ from swarmloc.runner import InProcessRunner
 from swarmloc.scenario import parse
 from test_lossy import check_versions
 
-N, BOUND, RUNS = 10, 3, 6
+N, BOUND, RUNS = 10, 3, 4
 
 
 def scenario(seed: int, n: int = N, duration: float = 40.0):
