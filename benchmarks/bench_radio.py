@@ -34,6 +34,7 @@ from machine import code_version, cpu_model  # benchmarks/machine.py
 
 import numpy as np
 
+from netsim import tune_gc
 from netsim.sim import Simulation
 from swarmloc.node import RadioTx
 from swarmloc.scenario import Scenario, parse
@@ -135,7 +136,11 @@ def main() -> None:
     p.add_argument("--agents", default="4,8,16,32,64", help="comma-separated swarm sizes")
     p.add_argument("--ticks", type=int, default=4000, help="measured ticks per config = max(40, TICKS / agents)")
     p.add_argument("--plot", type=Path, default=None, help="write the scaling plot here (PNG)")
+    p.add_argument("--default-gc", action="store_true",
+                   help="leave Python's garbage collector as it is (the netsim process tunes it: netsim.tune_gc)")
     a = p.parse_args()
+    if not a.default_gc:
+        tune_gc()
     load_start = os.getloadavg()[0]
     code_start = code_version()
     sizes = [int(v) for v in a.agents.split(",")]

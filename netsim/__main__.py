@@ -14,6 +14,7 @@ import logging
 import sys
 from pathlib import Path
 
+from netsim import tune_gc
 from netsim.server import NetsimServer, ServerConfig, SetupError
 from swarmloc import scenario as scenarios
 
@@ -43,6 +44,7 @@ def main(argv=None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     exit_on_sigterm()
+    tune_gc()
     cfg = ServerConfig(swarm=a.swarm, listen=tuple(a.listen or ["tcp/127.0.0.1:7447"]), out=a.out,
                        join_timeout=a.join_timeout, tick_timeout=a.tick_timeout, plots=not a.no_plots,
                        await_rejoin=a.await_rejoin)
