@@ -555,7 +555,9 @@ class UkfDclNode(Node):
         key = tuple(msg.key)
         if not self._valid_commit(msg):
             return []
-        if self.bounded and self.id != key[0] and self.id not in msg.parent and src == key[0]:
+        if self.bounded and self.id != key[0] and src == key[0] and msg.parent.get(self.id) != src:
+            if self.id in msg.parent:
+                return self.drop("overheard", f"commit {key}: ours comes from our parent")
             return self._overheard(msg)
         if msg.parent.get(self.id, key[0]) != src or (self.id != key[0] and self.id not in msg.parent):
             return self.drop("misrouted", f"commit {key}")
