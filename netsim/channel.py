@@ -49,7 +49,6 @@ __all__ = [
     "Outcomes",
     "LinkInfo",
     "Jammer",
-    "RxBatch",
     "ChannelModel",
     "UnitDisk",
     "LogDistance",
@@ -328,26 +327,6 @@ class Jammer:
         return self.t_start < t1 and self.t_end > t0
 
 
-@dataclass(frozen=True)
-class RxBatch:
-    """Everything a model needs to judge one frame at k receivers (arrays of length k).
-
-    Interference is the worst case (maximum over the airtime) of the summed
-    power of overlapping transmissions only (``interference_tx_mw``) and of
-    transmissions plus jammers (``interference_all_mw``).
-    """
-
-    distance_m: FloatArray
-    shadow_db: FloatArray
-    bits: int
-    half_duplex: NDArray[np.bool_]
-    interference_tx_mw: FloatArray
-    interference_all_mw: FloatArray
-
-
-Verdicts = tuple[NDArray[np.bool_], list[Reason | None], FloatArray]
-
-
 # --------------------------------------------------------------------------- #
 # Channel models
 # --------------------------------------------------------------------------- #
@@ -378,7 +357,6 @@ class ChannelModel(Protocol):
     def frame_bits(self, size: int) -> int: ...
     def rx_power_dbm(self, distance_m: FloatArray, shadow_db: FloatArray) -> FloatArray: ...
     def jammer_rx_power_dbm(self, jammer: Jammer, distance_m: FloatArray) -> FloatArray: ...
-    def decide(self, batch: RxBatch, rng: np.random.Generator) -> Verdicts: ...
     def delivery_delay_s(self, distance_m: FloatArray, rng: np.random.Generator) -> FloatArray: ...
     def backoff_s(self, stage: int, rng: np.random.Generator) -> float: ...
     def backoff_window(self, stage: int) -> tuple[float, float, int]: ...
@@ -459,11 +437,6 @@ class UnitDisk(BaseModel):
 
     def jammer_rx_power_dbm(self, jammer: Jammer, distance_m: FloatArray) -> FloatArray:
         return np.full(np.shape(distance_m), np.nan)
-
-    def decide(self, batch: RxBatch, rng: np.random.Generator) -> Verdicts:
-        return _verdicts(self.judge(batch.distance_m, self.rx_power_dbm(batch.distance_m, batch.shadow_db),
-                                    batch.interference_tx_mw, batch.interference_all_mw, batch.half_duplex,
-                                    np.full(len(batch.distance_m), batch.bits), rng))
 
     def judge(
         self,
@@ -686,11 +659,6 @@ class LogDistance(BaseModel):
             in_band_db = 10.0 * math.log10(self.bandwidth_hz / jammer.band_hz)
         return np.asarray(jammer.power_dbm + in_band_db + self.rx_gain_dbi - self.path_loss_db(distance_m), dtype=float)
 
-    def decide(self, batch: RxBatch, rng: np.random.Generator) -> Verdicts:
-        return _verdicts(self.judge(batch.distance_m, self.rx_power_dbm(batch.distance_m, batch.shadow_db),
-                                    batch.interference_tx_mw, batch.interference_all_mw, batch.half_duplex,
-                                    np.full(len(batch.distance_m), batch.bits), rng))
-
     def judge(
         self,
         distance_m: FloatArray,
@@ -754,11 +722,6 @@ class LogDistance(BaseModel):
         pdr = np.where(rx < self.effective_sensitivity_dbm, 0.0,
                        1.0 - np.asarray(self.per(snr_db, self.frame_bits(size)), dtype=float))
         return rx, snr_db, pdr, pdr >= 0.5
-
-
-def _verdicts(judged: tuple[NDArray[np.int8], FloatArray]) -> Verdicts:
-    code, sinr_db = judged
-    return code == 0, [_REASON_OF_CODE[c] for c in code.tolist()], sinr_db
 
 
 ChannelConfig = Annotated[Union[UnitDisk, LogDistance], Field(discriminator="model")]

@@ -8,12 +8,22 @@ plots (the run directory).
 """
 
 import _thread
+import importlib
 import os
 import signal
 import sys
 import threading
 
 __version__ = "0.1.0"
+
+
+def resolve(path: str):
+    """The object a "module:attribute.path" string names (registry factories, node specs)."""
+    module, _, attr = path.partition(":")
+    obj = importlib.import_module(module)
+    for part in attr.split("."):
+        obj = getattr(obj, part)
+    return obj
 
 
 def pin_blas() -> None:

@@ -8,7 +8,6 @@ reads a clock, so the same object runs in the in-process runner and in the agent
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import json
 import logging
 from collections import Counter, OrderedDict
@@ -17,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from swarmloc import wire
+from swarmloc import resolve, wire
 from swarmloc.messages import LinkNack, Sensors
 from swarmloc.models import MOTION_MODELS, MotionModel, Odometry
 
@@ -40,8 +39,12 @@ class NodeSpec:
     def of(cls, node_cls: type, **kwargs) -> "NodeSpec":
         return cls(f"{node_cls.__module__}:{node_cls.__qualname__}", kwargs)
 
+    def with_(self, **kwargs) -> "NodeSpec":
+        """The same node with some constructor arguments added or replaced (a subclass's own)."""
+        return NodeSpec(self.factory, {**self.kwargs, **kwargs})
+
     def build(self) -> "Node":
-        return _resolve(self.factory)(**{k: _decode(v) for k, v in self.kwargs.items()})
+        return resolve(self.factory)(**{k: _decode(v) for k, v in self.kwargs.items()})
 
     def dumps(self) -> str:
         return json.dumps({"factory": self.factory, "kwargs": {k: _encode(v) for k, v in self.kwargs.items()}})
@@ -54,14 +57,6 @@ class NodeSpec:
         if not d["factory"].startswith("swarmloc."):
             raise ValueError(f"node spec factory {d['factory']!r} is not a swarmloc class")
         return cls(d["factory"], d["kwargs"])
-
-
-def _resolve(path: str):
-    module, _, attr = path.partition(":")
-    obj: Any = importlib.import_module(module)
-    for part in attr.split("."):
-        obj = getattr(obj, part)
-    return obj
 
 
 def _encode(v):
@@ -83,7 +78,7 @@ def _decode(v):
             return np.array(v["array"], dtype=float)
         if not str(v.get("dataclass", "")).startswith("swarmloc."):
             raise ValueError(f"node spec: unknown value {v!r}")
-        return _resolve(v["dataclass"])(**{k: _decode(x) for k, x in v["fields"].items()})
+        return resolve(v["dataclass"])(**{k: _decode(x) for k, x in v["fields"].items()})
     if isinstance(v, list):
         return [_decode(x) for x in v]
     return v

@@ -11,7 +11,7 @@ from scipy.stats import chi2
 
 from netsim.sim import Simulation
 from swarmloc import scenario as S
-from swarmloc.results import compute_references
+from swarmloc.results import compute_references, nees_series, position_errors
 from swarmloc.runner import InProcessRunner, make_nodes
 
 RUNS = 20
@@ -58,12 +58,10 @@ def monte_carlo(loss, partition):
 
         record = InProcessRunner(sim, nodes).run(on_tick=on_tick)
         compute_references(sc, record)
-        truth = record.truth_array()
         for alg in ("ukf-dcl", "ukf-ccl", "il"):
             tr = record.trace(alg)
-            e = tr.mean - truth
-            nees[alg].append(np.einsum("tni,tnij,tnj->tn", e, np.linalg.inv(tr.cov), e)[1:])
-            err[alg].append(np.linalg.norm(e, axis=-1)[1:].mean())
+            nees[alg].append(nees_series(record, tr)[1:])
+            err[alg].append(position_errors(record, tr)[1:].mean())
         drops += sum((n.drops for n in nodes.values()), collections.Counter())
         heal_k = int(HEAL / sc.clock.dt)
         after_heal += used[-1] - used[heal_k]

@@ -13,7 +13,7 @@ from scipy.stats import chi2
 
 from netsim.sim import Simulation
 from swarmloc.estimators import make_nodes
-from swarmloc.results import compute_references
+from swarmloc.results import compute_references, nees_series, position_errors
 from swarmloc.runner import InProcessRunner
 from swarmloc.scenario import parse
 from test_lossy import check_versions
@@ -50,12 +50,10 @@ def monte_carlo():
     nees, err, used, visited = collections.defaultdict(list), collections.defaultdict(list), 0, collections.Counter()
     for seed in range(RUNS):
         sc, nodes, record = run(seed, check=check_versions)
-        truth = record.truth_array()
         for alg in ("ukf-dcl", "ukf-ccl", "il"):
             tr = record.trace(alg)
-            e = tr.mean - truth
-            nees[alg].append(np.einsum("tni,tnij,tnj->tn", e, np.linalg.inv(tr.cov), e)[1:])
-            err[alg].append(np.linalg.norm(e, axis=-1)[1:].mean())
+            nees[alg].append(nees_series(record, tr)[1:])
+            err[alg].append(position_errors(record, tr)[1:].mean())
         used += sum(n.stats["measurements_used"] for n in nodes.values())
         for n in nodes.values():
             for c in n.log:

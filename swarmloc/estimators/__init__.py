@@ -12,20 +12,13 @@ Factories are named by "module:attribute" and imported on first use, so reading 
 
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable
+from typing import Iterable
+
+from swarmloc import resolve
 
 PLANAR = ("planar-speed-heading",)
 UAS = ("uas-ins",)
-
-
-def _resolve(path: str) -> Any:
-    module, _, attr = path.partition(":")
-    obj: Any = importlib.import_module(module)
-    for part in attr.split("."):
-        obj = getattr(obj, part)
-    return obj
 
 
 @dataclass(frozen=True)
@@ -62,7 +55,7 @@ class EstimatorInfo:
 
         from swarmloc.estimators.settings import NoSettings
 
-        model = _resolve(self.settings_path) if self.settings_path else NoSettings
+        model = resolve(self.settings_path) if self.settings_path else NoSettings
         try:
             return model.model_validate(params or {})
         except ValidationError as exc:
@@ -77,7 +70,7 @@ class EstimatorInfo:
             raise ValueError(f"{self.name} is a reference, not run by agents")
         if not scenario.agent(aid).localized and scenario.agent(aid).model not in self.models:
             return NodeSpec.of(Idle, aid=aid, algorithm=self.name)
-        return _resolve(self.node)(scenario, aid, settings if settings is not None else self.settings())
+        return resolve(self.node)(scenario, aid, settings if settings is not None else self.settings())
 
     def make_node(self, scenario, aid: int, settings=None):
         return self.node_spec(scenario, aid, settings).build()
@@ -85,7 +78,7 @@ class EstimatorInfo:
     def make_reference(self, scenario, ids: list[int], settings=None):
         settings = settings if settings is not None else self.settings()
         if self.batch is not None:
-            return _resolve(self.batch)(scenario, ids, settings)
+            return resolve(self.batch)(scenario, ids, settings)
         return PerNodeReference({a: self.make_node(scenario, a, settings) for a in ids})
 
 

@@ -71,8 +71,7 @@ class CiNode(EkfNode):
 
     @classmethod
     def spec(cls, scenario, aid, settings=None) -> NodeSpec:
-        base = super().spec(scenario, aid)
-        return NodeSpec(base.factory, {**base.kwargs, "criterion": getattr(settings, "criterion", "trace")})
+        return super().spec(scenario, aid).with_(criterion=getattr(settings, "criterion", "trace"))
 
     def resume(self, k, x, P) -> None:
         super().resume(k, x, P)

@@ -125,8 +125,7 @@ def node_spec(scenario, aid: int, settings) -> NodeSpec:
         return NodeSpec.of(FusionCentre, aid=aid, roster=roster, imu=imu_spec(scenario), wait=settings.wait,
                            forget_after=settings.forget_after)
     if model == UAS.name:
-        base = CentreClient.spec(scenario, aid)
-        return NodeSpec(base.factory, {**base.kwargs, "centre": centre})
+        return CentreClient.spec(scenario, aid).with_(centre=centre)
     if model == GROUND_STATION:
         return NodeSpec.of(Idle, aid=aid, algorithm=CentreClient.algorithm)
     raise ValueError(f"ekf-centre runs on {UAS.name} platforms; agent {aid} is {model}")

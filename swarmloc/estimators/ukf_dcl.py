@@ -256,22 +256,20 @@ class UkfDclNode(Node):
         self.seen.add(fingerprint)
         return self._chain_frame(src, msg)
 
+    def _when(self, msg) -> int:
+        """-1: a frame of a tick (or epoch) that is over; 0: current; 1: early. Bounded chains
+        have no tick-wide order of chains: any frame of this tick is current."""
+        mine = (self.k, 0 if self.bounded else self.epoch)
+        theirs = (msg.k, 0 if self.bounded else msg.epoch)
+        return (theirs > mine) - (theirs < mine)
+
     def _chain_frame(self, src, msg) -> list[Send]:
-        if self.bounded:
-            # No tick-wide order of chains: any frame of this tick is current.
-            if msg.k < self.k:
-                return self._late_commit(src, msg) if isinstance(msg, DclCommit) else self.drop("stale", f"k={msg.k}")
-            if msg.k > self.k:
-                if len(self.held) >= 256:
-                    return self.drop("held-overflow")
-                self.held.append((src, msg))
-                return []
-            return self._dispatch(src, msg)
-        if msg.k < self.k or (msg.k == self.k and msg.epoch < self.epoch):
+        when = self._when(msg)
+        if when < 0:
             if isinstance(msg, DclCommit):
                 return self._late_commit(src, msg)
             return self.drop("stale", f"k={msg.k} epoch={msg.epoch}")
-        if msg.k > self.k or msg.epoch > self.epoch:
+        if when > 0:
             if len(self.held) >= 256:
                 return self.drop("held-overflow")
             self.held.append((src, msg))
@@ -292,9 +290,10 @@ class UkfDclNode(Node):
     def _release_held(self) -> list[Send]:
         ready, later, out = [], [], []
         for s, m in self.held:
-            if m.k == self.k and (self.bounded or m.epoch == self.epoch):
+            when = self._when(m)
+            if when == 0:
                 ready.append((s, m))
-            elif m.k > self.k or (m.k == self.k and m.epoch > self.epoch):
+            elif when > 0:
                 later.append((s, m))
             elif isinstance(m, DclCommit):
                 out += self._late_commit(s, m)  # overtaken, but a commit may still apply
