@@ -29,7 +29,7 @@ import numpy as np
 import zenoh
 
 from swarmloc import exit_on_sigterm, wire
-from swarmloc.messages import Clock, Done, EstimateMsg, LinkNack, Reply, Sensors
+from swarmloc.messages import Clock, Done, EstimateMsg, LinkNack, Reply, Sensors, TargetEstimateMsg
 from swarmloc.node import Node, NodeSpec, Outbox, Timers, estimate_of
 
 log = logging.getLogger("swarmloc.agent")
@@ -327,12 +327,14 @@ class AgentDaemon:
         if self.node.model.state_dim == 0:
             return  # a ground station localizes nothing
         e = estimate_of(self.node)
-        sig = (e.k, e.mean.tobytes(), e.cov.tobytes())
+        sig = (e.k, e.mean.tobytes(), e.cov.tobytes(), tuple(m.tobytes() for _, m, _ in e.targets))
         if sig == self._last_published or e.k < 0:
             return
         self._last_published = sig
         nis = np.array(e.nis, float).reshape(-1, 2) if e.nis else None
-        self._pub_est.put(wire.encode(EstimateMsg(e.k, self.node.algorithm, e.mean, e.cov, nis), self.node.id, self.handled))
+        targets = [TargetEstimateMsg(o, m, P) for o, m, P in e.targets]
+        self._pub_est.put(wire.encode(EstimateMsg(e.k, self.node.algorithm, e.mean, e.cov, nis, targets),
+                                      self.node.id, self.handled))
 
 
 # ---------------------------------------------------------------------------- entry points

@@ -178,7 +178,8 @@ class NetsimServer:
                 self.unresponsive.discard(aid)
             else:
                 nis = () if body.nis is None else tuple((float(v), int(d)) for v, d in body.nis)
-                self.record.add_estimate(body.algorithm, aid, Estimate(body.k, body.mean, body.cov, nis))
+                targets = tuple((t.target, t.mean, t.cov) for t in body.targets)
+                self.record.add_estimate(body.algorithm, aid, Estimate(body.k, body.mean, body.cov, nis, targets))
         elif kind == "alive":
             try:
                 aid = wire.Keys.agent_of(key)
@@ -398,7 +399,7 @@ class NetsimServer:
             self._put(self.pub_truth[a], Truth(k, t, truth[a]))
             if a in self.alive and a not in after:
                 self._put(self.pub_sensors[a], frames[a])
-        self.record.add_tick(k, t, frames, truth)
+        self.record.add_tick(k, t, frames, truth, self.sim.targets())
         return k
 
     def _end_tick(self, k: int) -> None:

@@ -210,6 +210,10 @@ class Simulation:
         self._record_links()
         return self.k, self.t, frames
 
+    def targets(self) -> dict[int, np.ndarray]:
+        """True target positions now ({} without targets)."""
+        return self.world.targets()
+
     def truth(self) -> dict[int, np.ndarray]:
         """Every agent's true state in its model's layout (docs/run-format.md)."""
         return self.world.states()

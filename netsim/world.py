@@ -12,12 +12,14 @@ import math
 
 import numpy as np
 
-from swarmloc.messages import GnssMsg, OdometryMsg, RangeMsg, Sensors
+from swarmloc.messages import GnssMsg, OdometryMsg, RangeMsg, Sensors, TargetRangeMsg
 from swarmloc.scenario import CircleMotion, Scenario
+
+PLANAR_MODELS = ("planar-speed-heading", "planar-pose")
 
 
 def streams(seed: int) -> dict[str, np.random.Generator]:
-    names = ("motion", "odometry", "range", "radio", "loss", "gnss")
+    names = ("motion", "odometry", "range", "radio", "loss", "gnss", "target")
     children = np.random.SeedSequence(seed).spawn(len(names))
     return {n: np.random.default_rng(c) for n, c in zip(names, children)}
 
@@ -29,12 +31,13 @@ class World:
     def __init__(self, scenario: Scenario, seed: int | None = None):
         self.sc = scenario
         seed = scenario.seed if seed is None else seed
+        self.seed = seed
         self.rng = streams(seed)
         self.dt = scenario.clock.dt
         self.ids = scenario.agent_ids
         self.k = -1
         self.t = 0.0
-        self.planar = [a for a in scenario.world.agents if a.model == "planar-speed-heading"]
+        self.planar = [a for a in scenario.world.agents if a.model in PLANAR_MODELS]
         self.planar_ids = sorted(a.id for a in self.planar)
         uas = sorted(a.id for a in scenario.world.agents if a.model == "uas-ins")
         self.fleet = None
@@ -50,6 +53,10 @@ class World:
         # The odometry's own heading: the integral of the measured turn rate from the known start.
         self.heading_est = dict(self.heading)
         self.heading_var = {a: 0.0 for a in self.planar_ids}
+        self.target_ids = sorted(t.id for t in scenario.world.targets)
+        self.target_pos = {t.id: np.array(t.position, float) for t in scenario.world.targets}
+        self.target_vel = {t.id: np.array(t.velocity, float) for t in scenario.world.targets}
+        self._steps: int | None = None
 
     @staticmethod
     def _initial_turn(motion) -> float:
@@ -57,7 +64,32 @@ class World:
 
     @property
     def steps(self) -> int:
-        return self.sc.clock.steps
+        """The last tick: clock.duration / dt, or earlier, the first tick at which an agent is
+        within world.stop_distance of a target. Truth does not depend on the estimates, so a
+        dry run of the same world (same seed) finds it before the run starts."""
+        if self._steps is None:
+            self._steps = self.sc.clock.steps
+            stop = self.sc.world.stop_distance
+            if stop is not None:
+                dry = World(self.sc, self.seed)
+                for k in range(1, self.sc.clock.steps + 1):
+                    dry.step()
+                    if dry.nearest_target() <= stop:
+                        self._steps = k
+                        break
+        return self._steps
+
+    def nearest_target(self) -> float:
+        """Distance (m) from the closest agent to the closest target; inf without targets."""
+        if not self.target_ids:
+            return math.inf
+        at = np.array([self.pos[a] for a in self.planar_ids]).reshape(-1, 2)
+        to = np.array([self.target_pos[o] for o in self.target_ids])
+        return float(np.linalg.norm(at[:, None] - to[None], axis=-1).min(initial=math.inf))
+
+    def targets(self) -> dict[int, np.ndarray]:
+        """Each target's true position now."""
+        return {o: p.copy() for o, p in self.target_pos.items()}
 
     def positions(self) -> dict[int, np.ndarray]:
         return {a: p.copy() for a, p in self.pos.items()}
@@ -65,7 +97,8 @@ class World:
     def states(self) -> dict[int, np.ndarray]:
         """Each agent's true state in its model's layout (a ground station's is empty)."""
         out = {a: np.zeros(0) for a in self.ids}
-        out.update({a: self.pos[a].copy() for a in self.planar_ids})
+        out.update({a.id: self.pos[a.id].copy() if a.model == "planar-speed-heading"
+                    else np.r_[self.pos[a.id], self.heading[a.id]] for a in self.planar})
         if self.fleet is not None:
             out.update(self.fleet.states())
         return out
@@ -95,10 +128,12 @@ class World:
             speed = m.speed
             # Odometry over this step uses the heading the platform believes it had at its start.
             v_meas = speed + self.rng["odometry"].normal(0.0, odo_cfg.speed_noise)
-            odometry[a] = OdometryMsg(self.dt, float(v_meas), self.heading_est[a], odo_cfg.speed_noise, math.sqrt(self.heading_var[a]))
+            heading_est, heading_std = self.heading_est[a], math.sqrt(self.heading_var[a])
             h = self.heading[a]
             self.pos[a] = self.pos[a] + self.dt * speed * np.array([math.cos(h), math.sin(h)])
             w_meas = self.turn[a] + self.rng["odometry"].normal(0.0, odo_cfg.turn_rate_noise)
+            odometry[a] = OdometryMsg(self.dt, float(v_meas), heading_est, odo_cfg.speed_noise, heading_std,
+                                      float(w_meas), odo_cfg.turn_rate_noise)
             self.heading[a] = h + self.dt * self.turn[a]
             self.heading_est[a] += self.dt * w_meas
             self.heading_var[a] += (self.dt * odo_cfg.turn_rate_noise) ** 2
@@ -107,7 +142,28 @@ class World:
                 self.turn[a] = decay * self.turn[a] + m.turn_rate_std * math.sqrt(1 - decay**2) * self.rng["motion"].normal()
         ranges = self._ranges()
         gnss = self._gnss(gnss_ok)
-        return {a: Sensors(self.k, self.t, odometry[a], ranges.get(a, []), gnss.get(a)) for a in self.planar_ids}
+        seen = self._target_ranges()
+        return {a: Sensors(self.k, self.t, odometry[a], ranges.get(a, []), gnss.get(a), targets=seen.get(a, []))
+                for a in self.planar_ids}
+
+    def _target_ranges(self) -> dict[int, list[TargetRangeMsg]]:
+        """Targets move first (constant velocity); then each agent within the detection range
+        of a target ranges it with the detection probability. Draws are made for every pair,
+        seen or not, so moving a target never shifts another pair's noise."""
+        if not self.target_ids:
+            return {}
+        cfg = self.sc.sensors.target_range
+        for o in self.target_ids:
+            self.target_pos[o] = self.target_pos[o] + self.dt * self.target_vel[o]
+        rng = self.rng["target"]
+        out: dict[int, list[TargetRangeMsg]] = {}
+        for a in self.planar_ids:
+            for o in self.target_ids:
+                detect, noise = rng.random(), rng.normal(0.0, cfg.noise)
+                dist = float(np.linalg.norm(self.pos[a] - self.target_pos[o]))
+                if dist <= cfg.max_range and detect < cfg.probability:
+                    out.setdefault(a, []).append(TargetRangeMsg(o, max(dist + noise, 0.0), cfg.noise))
+        return out
 
     def _gnss(self, gnss_ok) -> dict[int, GnssMsg]:
         cfg = self.sc.sensors.gnss

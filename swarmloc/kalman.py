@@ -41,9 +41,14 @@ def permuted_cholesky(P: np.ndarray, first: list[int], block: int) -> np.ndarray
     the remaining blocks does not matter for a measurement that only involves `first`: the
     first len(first) column blocks of a lower factor depend only on those rows and columns.
     """
-    nblocks = P.shape[0] // block
-    order = list(first) + [b for b in range(nblocks) if b not in first]
-    idx = np.concatenate([np.arange(b * block, (b + 1) * block) for b in order])
+    return cholesky_first(P, np.concatenate([np.arange(b * block, (b + 1) * block) for b in first]))
+
+
+def cholesky_first(P: np.ndarray, first: np.ndarray) -> np.ndarray:
+    """permuted_cholesky by component indices: `first` in the given order, then the rest in
+    ascending order (blocks of any sizes)."""
+    rest = np.setdiff1d(np.arange(P.shape[0]), first)
+    idx = np.concatenate([np.asarray(first, dtype=np.intp), rest])
     L = np.linalg.cholesky(P[np.ix_(idx, idx)])
     S = np.empty_like(L)
     S[idx] = L

@@ -42,6 +42,10 @@ class OdometryMsg:
     heading: Annotated[float, Float()]
     speed_std: Annotated[float, Float(lo=0.0)]
     heading_std: Annotated[float, Float(lo=0.0)]
+    # The gyro's turn rate over the step and its std: what a model with heading in its state
+    # (planar-pose) reads instead of `heading`.
+    turn_rate: Annotated[float, Float()] = 0.0
+    turn_rate_std: Annotated[float, Float(lo=0.0)] = 0.0
 
 
 @message("range")
@@ -91,6 +95,17 @@ class RelPosMsg:
     std: Annotated[float, Float(lo=0.0)]
 
 
+@message("target_range")
+class TargetRangeMsg:
+    """A range from the measuring agent to target `target` (an id of the scenario's
+    `world.targets`, its own id space), taken only within `sensors.target_range.max_range`
+    and with probability `sensors.target_range.probability` per tick."""
+
+    target: Id
+    range: Annotated[float, Float(lo=0.0)]
+    std: Annotated[float, Float(lo=0.0)]
+
+
 @message("align")
 class AlignMsg:
     """A UAS's pre-flight alignment, in its tick-0 frame only: its initial state estimate in
@@ -116,6 +131,7 @@ class Sensors:
     pseudoranges: Annotated[PseudorangesMsg | None, Optional(Nested(PseudorangesMsg))] = None
     relpos: Annotated[list, ListOf(Nested(RelPosMsg), max_len=64)] = field(default_factory=list)
     align: Annotated[AlignMsg | None, Optional(Nested(AlignMsg))] = None
+    targets: Annotated[list, ListOf(Nested(TargetRangeMsg), max_len=64)] = field(default_factory=list)
 
 
 @message("truth")
@@ -128,6 +144,15 @@ class Truth:
 # --------------------------------------------------------------------------- agent -> anyone
 
 
+@message("target_estimate")
+class TargetEstimateMsg:
+    """An agent's estimate of target `target`: position (m, swarm frame) and its covariance."""
+
+    target: Id
+    mean: Vec
+    cov: SqMat
+
+
 @message("estimate")
 class EstimateMsg:
     k: Tick
@@ -136,6 +161,8 @@ class EstimateMsg:
     cov: SqMat
     # (NIS, degrees of freedom) of each innovation the estimator formed in tick k (rows).
     nis: Annotated[np.ndarray | None, Optional(Array(2))] = None
+    # The agent's estimate of each target it localizes (CSL-CTL, IL-CTL); [] otherwise.
+    targets: Annotated[list, ListOf(Nested(TargetEstimateMsg), max_len=64)] = field(default_factory=list)
 
 
 @message("done")
@@ -268,6 +295,29 @@ class DclLog:
 
     k: Tick
     commits: Annotated[list, ListOf(Nested(DclCommit), max_len=64)]
+
+
+# CSL-CTL and IL-CTL (Wang et al. 2022): every agent shares what it measured this tick.
+
+
+@message("csl.share")
+class CslShare:
+    """CSL-CTL, broadcast once per tick: the sender's sensor frame of tick k (odometry, ranges
+    to agents, ranges to targets). Every agent runs the joint problem of the agents it hears."""
+
+    k: Tick
+    sensors: Annotated[Sensors, Nested(Sensors)]
+
+
+@message("ctl.fix")
+class CtlFix:
+    """IL-CTL, broadcast once per tick: the sender's own position estimate after tick k (its
+    IL dead reckoning) and its ranges to targets, which the receivers take as exact anchors."""
+
+    k: Tick
+    mean: Vec
+    cov: SqMat
+    targets: Annotated[list, ListOf(Nested(TargetRangeMsg), max_len=64)]
 
 
 # EKF fusion centre (Goel et al. section 3): UAS send their inputs, the centre runs the joint EKF.

@@ -28,6 +28,8 @@ class Odometry:
     heading: float
     speed_std: float
     heading_std: float
+    turn_rate: float = 0.0  # measured over the step (rad/s): what a model with heading in its state reads
+    turn_rate_std: float = 0.0
 
 
 class MotionModel:
@@ -74,6 +76,38 @@ class PlanarSpeedHeading(MotionModel):
         G = u.dt * np.array([[c, -u.speed * s], [s, u.speed * c]])
         Q = G @ np.diag([u.speed_std**2, u.heading_std**2]) @ G.T
         return x_new, np.eye(2), Q
+
+
+class PlanarPose(MotionModel):
+    """A unicycle: planar position and heading, driven by measured speed and turn rate.
+
+    x_{k+1} = x_k + dt v cos(theta_k), y_{k+1} = y_k + dt v sin(theta_k),
+    theta_{k+1} = theta_k + dt w, with Q = G diag(speed_std^2, turn_rate_std^2) G^T,
+    G = d f / d(v, w). With the heading in the state, a gyro's drift is a state error that
+    persists from step to step, as it does in the world; eq. (1)'s position-only model can only
+    treat it as fresh noise each step, and is overconfident when the gyro is poor."""
+
+    name = "planar-pose"
+    state_dim = 3
+    position_dim = 2
+    identity_transition = False
+
+    def predict(self, x, u):
+        c, s = np.cos(x[2]), np.sin(x[2])
+        x_new = x + np.array([u.dt * u.speed * c, u.dt * u.speed * s, u.dt * u.turn_rate])
+        F = np.array([[1.0, 0.0, -u.dt * u.speed * s], [0.0, 1.0, u.dt * u.speed * c], [0.0, 0.0, 1.0]])
+        G = np.array([[u.dt * c, 0.0], [u.dt * s, 0.0], [0.0, u.dt]])
+        Q = G @ np.diag([u.speed_std**2, u.turn_rate_std**2]) @ G.T
+        return x_new, F, Q
+
+    def error(self, x_true, x_est):
+        e = np.asarray(x_true, float) - np.asarray(x_est, float)
+        e[..., 2] = (e[..., 2] + np.pi) % (2 * np.pi) - np.pi
+        return e
+
+    @property
+    def layout(self):
+        return StateLayout.planar_pose()
 
 
 class UasIns(MotionModel):
@@ -127,7 +161,7 @@ class GroundStation(MotionModel):
         return x, np.zeros((0, 0)), np.zeros((0, 0))
 
 
-MOTION_MODELS: dict[str, MotionModel] = {m.name: m for m in (PlanarSpeedHeading(), UasIns(), GroundStation())}
+MOTION_MODELS: dict[str, MotionModel] = {m.name: m for m in (PlanarSpeedHeading(), PlanarPose(), UasIns(), GroundStation())}
 
 
 class RelativeMeasurement:

@@ -110,13 +110,14 @@ class Estimate:
     mean: np.ndarray
     cov: np.ndarray
     nis: tuple = ()  # (NIS, dof) of each innovation the estimator formed in tick k
+    targets: tuple = ()  # (target id, mean, cov) of each target the estimator localizes
 
 
 def estimate_of(node) -> Estimate:
     """A node's estimate with the NIS values of its current tick (`node.nis`, where it has them)."""
     e = node.estimate()
     nis = tuple(getattr(node, "nis", ()) or ())
-    return Estimate(e.k, e.mean, e.cov, nis) if nis else e
+    return dataclasses.replace(e, nis=nis) if nis else e
 
 
 def keyed_ranges(measurer: int, sensors: Sensors):
@@ -132,7 +133,7 @@ def keyed_ranges(measurer: int, sensors: Sensors):
 
 def odometry_of(s: Sensors) -> Odometry:
     o = s.odometry
-    return Odometry(o.dt, o.speed, o.heading, o.speed_std, o.heading_std)
+    return Odometry(o.dt, o.speed, o.heading, o.speed_std, o.heading_std, o.turn_rate, o.turn_rate_std)
 
 
 class Node:

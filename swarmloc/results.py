@@ -33,18 +33,26 @@ class Trace:
     mean: np.ndarray  # (T, N, d), NaN where the agent reported nothing
     cov: np.ndarray  # (T, N, d, d)
     dims: np.ndarray | None = None  # (N,) state dimension of each agent; None: all d
+    # Each agent's estimate of each target (CSL-CTL, IL-CTL), NaN where it has none; None for an
+    # estimator that localizes no target.
+    target_ids: np.ndarray | None = None  # (M,)
+    target_mean: np.ndarray | None = None  # (T, N, M, 2)
+    target_cov: np.ndarray | None = None  # (T, N, M, 2, 2)
 
     def __post_init__(self):
         if self.dims is None:
             self.dims = np.full(len(self.ids), self.mean.shape[-1], np.int64)
 
     def save(self, path: Path) -> None:
-        np.savez(path, ids=self.ids, k=self.k, t=self.t, mean=self.mean, cov=self.cov, dims=self.dims)
+        targets = {} if self.target_ids is None else {
+            "target_ids": self.target_ids, "target_mean": self.target_mean, "target_cov": self.target_cov}
+        np.savez(path, ids=self.ids, k=self.k, t=self.t, mean=self.mean, cov=self.cov, dims=self.dims, **targets)
 
     @classmethod
     def load(cls, path: Path) -> "Trace":
         with np.load(path, allow_pickle=False) as f:
-            return cls(f["ids"], f["k"], f["t"], f["mean"], f["cov"], f["dims"] if "dims" in f else None)
+            targets = [f[n] if n in f else None for n in ("target_ids", "target_mean", "target_cov")]
+            return cls(f["ids"], f["k"], f["t"], f["mean"], f["cov"], f["dims"] if "dims" in f else None, *targets)
 
 
 class RunRecord:
@@ -67,6 +75,8 @@ class RunRecord:
         self.t: list[float] = []
         self.truth: list[np.ndarray] = []
         self.sensors: list[dict[int, Sensors]] = []
+        self.target_ids: list[int] = []
+        self.target_truth: list[np.ndarray] = []  # per tick (M, 2)
         self.est: dict[str, dict[int, dict[int, Estimate]]] = {}
         # alg -> {(k, agent): [(nis, dof), ...]}: an agent may publish its estimate of a tick more
         # than once (a fusion-centre UAS: its own, then the centre's); the last one counts.
@@ -76,7 +86,13 @@ class RunRecord:
     def for_scenario(cls, scenario) -> "RunRecord":
         return cls(scenario.localized_ids, {a: scenario.agent(a).model for a in scenario.localized_ids})
 
-    def add_tick(self, k: int, t: float, frames: dict[int, Sensors], truth: dict[int, np.ndarray]) -> None:
+    def add_tick(self, k: int, t: float, frames: dict[int, Sensors], truth: dict[int, np.ndarray],
+                 targets: dict[int, np.ndarray] | None = None) -> None:
+        """One tick's sensor frames and truth: every agent's state and every target's position."""
+        if targets:
+            if not self.target_ids:
+                self.target_ids = sorted(targets)
+            self.target_truth.append(np.array([targets[o] for o in self.target_ids], float))
         self.k.append(k)
         self.t.append(t)
         self.sensors.append(frames)
@@ -107,7 +123,17 @@ class RunRecord:
                 n = self.dims[self.col[a]]
                 mean[ti, self.col[a], :n] = e.mean
                 cov[ti, self.col[a], :n, :n] = e.cov
-        return Trace(np.array(self.ids), np.array(self.k), np.array(self.t), mean, cov, self.dims.copy())
+        trace = Trace(np.array(self.ids), np.array(self.k), np.array(self.t), mean, cov, self.dims.copy())
+        if self.target_ids and any(e.targets for per in by_k.values() for e in per.values()):
+            M, col = len(self.target_ids), {o: i for i, o in enumerate(self.target_ids)}
+            tm, tc = np.full((T, N, M, 2), np.nan), np.full((T, N, M, 2, 2), np.nan)
+            for ti, k in enumerate(self.k):
+                for a, e in by_k.get(k, {}).items():
+                    for o, m, P in e.targets:
+                        if o in col:
+                            tm[ti, self.col[a], col[o]], tc[ti, self.col[a], col[o]] = m, P
+            trace.target_ids, trace.target_mean, trace.target_cov = np.array(self.target_ids), tm, tc
+        return trace
 
     def truth_array(self) -> np.ndarray:
         return np.stack(self.truth)
@@ -233,6 +259,43 @@ def position_errors(record: RunRecord, trace: Trace) -> np.ndarray:
     return out
 
 
+def target_errors(record: RunRecord, trace: Trace) -> tuple[np.ndarray, np.ndarray]:
+    """Each agent's target error (m) and target NEES (2 dof) per tick: (T, N, M) each, NaN
+    where the agent has no estimate of the target (yet)."""
+    truth = np.stack(record.target_truth)  # (T, M, 2)
+    e = trace.target_mean - truth[:, None]
+    err = np.linalg.norm(e, axis=-1)
+    nees = np.full(err.shape, np.nan)
+    ok = ~np.isnan(err) & ~np.isnan(trace.target_cov).any(axis=(-1, -2))
+    if ok.any():
+        P = trace.target_cov[ok]
+        good = np.linalg.det(P) > 0
+        sol = np.full(e[ok].shape, np.nan)
+        sol[good] = np.linalg.solve(P[good], e[ok][good][..., None])[..., 0]
+        nees[ok] = np.einsum("ni,ni->n", e[ok], sol)
+    return err, nees
+
+
+def _target_metrics(record: RunRecord, trace: Trace) -> dict:
+    """Per target: the agents' mean error over the ticks they had an estimate, the final error
+    (mean over agents at the last tick), and the NEES average with its 95% bounds."""
+    err, nees = target_errors(record, trace)
+    out = {}
+    for mi, o in enumerate(record.target_ids):
+        e, n = err[:, :, mi], nees[:, :, mi]
+        final = e[-1][~np.isnan(e[-1])]
+        per = {str(a): {"mean_error_m": float(np.nanmean(e[:, ci])) if (~np.isnan(e[:, ci])).any() else None,
+                        "final_error_m": None if np.isnan(e[-1, ci]) else float(e[-1, ci]),
+                        "first_tick": int(record.k[int(np.argmax(~np.isnan(e[:, ci])))]) if (~np.isnan(e[:, ci])).any() else None}
+               for ci, a in enumerate(record.ids)}
+        valid = n[~np.isnan(n)]
+        out[str(o)] = {"agents": per,
+                       "mean_error_m": float(np.nanmean(e)) if (~np.isnan(e)).any() else None,
+                       "final_error_m": float(final.mean()) if final.size else None,
+                       "nees": _average_with_bounds(valid, np.full(valid.size, 2))}
+    return out
+
+
 def metrics(record: RunRecord, algorithms: list[str]) -> dict:
     """Per estimator and agent: position error (mean over ticks 1.., final, max), NEES and
     NIS averages with their two-sided 95% chi-square bounds."""
@@ -269,6 +332,8 @@ def metrics(record: RunRecord, algorithms: list[str]) -> dict:
             "nees": _average_with_bounds(ne, dof),
             "nis": _average_with_bounds(np.array([v for *_, v, _ in nis]), np.array([d for *_, d in nis], np.int64)),
         }
+        if tr.target_ids is not None:
+            out["estimators"][alg]["targets"] = _target_metrics(record, tr)
     return out
 
 
@@ -278,8 +343,10 @@ def write_run(out: Path, scenario, record: RunRecord, algorithms: list[str], ext
     out = Path(out)
     (out / "estimates").mkdir(parents=True, exist_ok=True)
     (out / "scenario.yaml").write_text(scenario.to_yaml())
+    targets = {"target_ids": np.array(record.target_ids), "target_position": np.stack(record.target_truth)} \
+        if record.target_ids else {}
     np.savez(out / "truth.npz", ids=np.array(record.ids), k=np.array(record.k), t=np.array(record.t),
-             state=record.truth_array(), dims=record.dims)
+             state=record.truth_array(), dims=record.dims, **targets)
     np.savez(out / "sensors.npz", **record.sensor_arrays())
     for alg in algorithms:
         record.trace(alg).save(out / "estimates" / f"{alg}.npz")

@@ -32,6 +32,9 @@ class Environment(Protocol):
     def truth(self) -> dict[int, np.ndarray]:
         """True states now."""
 
+    def targets(self) -> dict[int, np.ndarray]:
+        """True target positions now ({} without targets)."""
+
     def exchange(self, frames: list) -> list:
         """One lockstep round: frames (src, dst, seq, data) in, deliveries (receiver, t, data | nack) out."""
 
@@ -63,7 +66,7 @@ class InProcessRunner:
                     raise RuntimeError(f"tick {k}: more than {self.max_rounds} radio rounds (livelock?)")
                 sent = [tx for rx in self.env.exchange(sent) if rx.receiver in self.nodes
                         for tx in self._encode(rx.receiver, self._deliver(rx))]
-            record.add_tick(k, t, frames, self.env.truth())
+            record.add_tick(k, t, frames, self.env.truth(), self.env.targets())
             for a, node in self.nodes.items():
                 record.add_estimate(node.algorithm, a, estimate_of(node))
             if on_tick:

@@ -90,7 +90,7 @@ Motion = Annotated[Union[CircleMotion, RandomMotion, Figure8Motion, OrbitMotion,
                    Field(discriminator="kind")]
 # Which motions each model's world can fly: planar robots drive, UAS fly 3D trajectories placed
 # so that they pass through `start` at t = 0, a ground station stays where it is.
-MOTIONS_OF_MODEL = {"planar-speed-heading": ("circle", "random"), "uas-ins": ("figure8", "orbit", "random3d"),
+MOTIONS_OF_MODEL = {"planar-speed-heading": ("circle", "random"), "planar-pose": ("circle", "random"), "uas-ins": ("figure8", "orbit", "random3d"),
                     "ground-station": ("static",)}
 
 
@@ -129,8 +129,28 @@ class AgentSpec(_Strict):
         return MOTION_MODELS[self.model].state_dim > 0
 
 
+class TargetSpec(_Strict):
+    """Something the swarm localizes besides itself: it carries no agent, sends nothing and is
+    only ever ranged (`sensors.target_range`)."""
+
+    id: int = Field(ge=0, description="target id, unique among the targets (its own id space, not the agents')")
+    position: list[float] = Field(description="position at t = 0 (m), 2 numbers")
+    velocity: list[float] = Field([0.0, 0.0], description="constant velocity (m/s), 2 numbers; [0, 0]: static")
+
+    @model_validator(mode="after")
+    def _planar(self):
+        for name in ("position", "velocity"):
+            v = getattr(self, name)
+            if len(v) != 2 or not all(math.isfinite(x) for x in v):
+                raise ValueError(f"{name} must be 2 finite numbers (targets are planar)")
+        return self
+
+
 class World(_Strict):
     agents: list[AgentSpec] = Field(min_length=1)
+    targets: list[TargetSpec] = Field(default_factory=list, description="targets to localize (CSL-CTL, IL-CTL)")
+    stop_distance: float | None = Field(None, gt=0, description="the run ends at the first tick at which an agent is "
+                                        "within this distance of a target (m); null: it runs `clock.duration`")
 
     @field_validator("agents")
     @classmethod
@@ -139,6 +159,17 @@ class World(_Strict):
         if len(set(ids)) != len(ids):
             raise ValueError(f"agent ids must be unique, got {ids}")
         return v
+
+    @model_validator(mode="after")
+    def _targets(self):
+        ids = [t.id for t in self.targets]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"target ids must be unique, got {ids}")
+        if self.targets and any(a.model not in ("planar-speed-heading", "planar-pose") for a in self.agents):
+            raise ValueError("targets: only a swarm of planar agents (planar-speed-heading, planar-pose) ranges targets")
+        if self.stop_distance is not None and not self.targets:
+            raise ValueError("stop_distance needs targets")
+        return self
 
 
 class OdometrySensor(_Strict):
@@ -153,6 +184,13 @@ class RangeSensor(_Strict):
     max_range: float = Field(math.inf, gt=0, description="sensing range (m): pairs farther apart are never measured")
     all_pairs: bool = Field(False, description="UAS: instead of random slots, every platform ranges every other "
                             "platform within max_range once per `sensors.epoch`")
+
+
+class TargetRangeSensor(_Strict):
+    noise: float = Field(10.0, gt=0, description="std of a range to a target (m)")
+    max_range: float = Field(math.inf, gt=0, description="detection range (m): a target farther away is not seen")
+    probability: float = Field(1.0, ge=0, le=1, description="chance per tick that an agent within max_range detects "
+                               "a target (and ranges it)")
 
 
 class GnssSensor(_Strict):
@@ -194,6 +232,7 @@ class Sensors(_Strict):
     gnss: GnssSensor = Field(default_factory=GnssSensor)
     imu: ImuSensor = Field(default_factory=ImuSensor)
     relpos: RelPosSensor = Field(default_factory=RelPosSensor)
+    target_range: TargetRangeSensor = Field(default_factory=TargetRangeSensor)
     epoch: float = Field(1.0, gt=0, description="UAS: seconds between GNSS epochs and between relative measurements "
                          "(a whole number of ticks)")
 
@@ -203,6 +242,7 @@ RADIO_MODELS = ("unit-disk", "log-distance")
 
 class Estimation(_Strict):
     initial_std: float = Field(0.1, gt=0, description="std of the known initial position (m)")
+    initial_heading_std: float = Field(1e-3, gt=0, description="planar-pose: std of the known initial heading (rad)")
     initial_error: bool = Field(True, description="draw each platform's initial estimate from N(start, "
                                 "initial_std^2), as the prior claims (false: start exactly at the truth, "
                                 "which makes NEES read low until the process noise dominates)")
@@ -356,7 +396,8 @@ class Scenario(_Strict):
         if self.references is not None:
             return [r for r in self.references if r != mine]
         models = {a.model for a in self.world.agents if a.localized}
-        return [r for r in REGISTRY.references() if models <= set(REGISTRY[r].models) and r != mine]
+        return [r for r in REGISTRY.references() if models <= set(REGISTRY[r].models) and r != mine
+                and (self.world.targets or not REGISTRY[r].targets)]
 
     def agent(self, aid: int) -> AgentSpec:
         return next(a for a in self.world.agents if a.id == aid)
@@ -364,12 +405,16 @@ class Scenario(_Strict):
     def prior(self, aid: int) -> tuple[np.ndarray, np.ndarray]:
         """Platform aid's initial estimate and covariance. The error is drawn from its own
         seeded stream, so every process (agent, in-process runner, references) gets the same."""
-        est, start = self.estimation, np.array(self.agent(aid).start, float)
-        P0 = np.eye(len(start)) * est.initial_std**2
+        est, spec = self.estimation, self.agent(aid)
+        start = np.array(spec.start, float)
+        std = np.full(len(start), est.initial_std)
+        if spec.model == "planar-pose":  # the heading is known too
+            start, std = np.r_[start, spec.heading], np.r_[std, est.initial_heading_std]
+        P0 = np.diag(std**2)
         if not est.initial_error:
             return start, P0
         rng = np.random.default_rng([self.seed, PRIOR_STREAM, aid])
-        return start + est.initial_std * rng.standard_normal(len(start)), P0
+        return start + std * rng.standard_normal(len(start)), P0
 
     def with_overrides(self, **changes) -> "Scenario":
         """A validated copy with dotted-path overrides, e.g. {"sensors.range.probability": 0.05}."""

@@ -18,6 +18,7 @@ from typing import Iterable
 from swarmloc import resolve
 
 PLANAR = ("planar-speed-heading",)
+POSE = ("planar-pose",)  # heading in the state: F is not the identity, so not for UKF-DCL
 UAS = ("uas-ins",)
 
 
@@ -44,6 +45,7 @@ class EstimatorInfo:
     batch: str | None = None
     settings_path: str | None = None
     paper: str = ""
+    targets: bool = False  # localizes the scenario's targets: a default reference only where there are some
 
     @property
     def runs_on_agents(self) -> bool:
@@ -143,15 +145,26 @@ class Registry:
 
 REGISTRY = Registry()
 for _info in (
-    EstimatorInfo("il", "IL", "dead reckoning on odometry alone, each robot by itself", PLANAR, "tab:gray",
+    EstimatorInfo("il", "IL", "dead reckoning on odometry alone, each robot by itself", PLANAR + POSE, "tab:gray",
                   node="swarmloc.estimators.il:IndependentNode.spec", reference=True,
                   paper="Wang et al. 2019 (baseline)"),
     EstimatorInfo("ukf-dcl", "UKF-DCL", "distributed UKF over serial chains of the robots a measurement correlates",
                   PLANAR, "tab:blue", node="swarmloc.estimators.ukf_dcl:UkfDclNode.spec",
                   settings_path="swarmloc.estimators.settings:DclSettings", paper="Wang et al. 2019"),
-    EstimatorInfo("ukf-ccl", "UKF-CCL", "centralized UKF over the joint state of the swarm", PLANAR, "tab:orange",
+    EstimatorInfo("ukf-ccl", "UKF-CCL", "centralized UKF over the joint state of the swarm", PLANAR + POSE, "tab:orange",
                   reference=True, batch="swarmloc.estimators.ukf_ccl:CentralizedUKF.from_scenario",
                   paper="Wang et al. 2019 (gold standard)"),
+    EstimatorInfo("csl-ctl", "CSL-CTL", "joint UKF of the swarm re-estimated with the targets by majorization each "
+                  "tick; every agent runs it on the frames all agents broadcast", PLANAR + POSE, "tab:green",
+                  node="swarmloc.estimators.csl_ctl:CslCtlNode.spec", reference=True,
+                  batch="swarmloc.estimators.csl_ctl:JointCslCtl.from_scenario",
+                  settings_path="swarmloc.estimators.settings:CtlSettings", paper="Wang et al. 2022", targets=True),
+    EstimatorInfo("il-ctl", "IL-CTL", "dead reckoning alone, then targets by least squares from the positions "
+                  "agents broadcast, taken as exact", PLANAR + POSE, "tab:red",
+                  node="swarmloc.estimators.csl_ctl:IlCtlNode.spec", reference=True,
+                  batch="swarmloc.estimators.csl_ctl:il_ctl_reference",
+                  settings_path="swarmloc.estimators.settings:CtlSettings", paper="Wang et al. 2022 (baseline)",
+                  targets=True),
     EstimatorInfo("ekf", "EKF alone", "each UAS's own INS/GNSS EKF, nothing shared", UAS, "tab:gray",
                   node="swarmloc.estimators.ekf:EkfNode.spec", reference=True,
                   paper="Goel et al. 2016 (no sharing)"),

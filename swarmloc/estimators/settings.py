@@ -52,3 +52,25 @@ class CentreSettings(BaseModel):
     forget_after: int = Field(20, ge=1, description="ticks without data after which the centre stops waiting for a UAS "
                               "(a UAS without data in a tick leaves the joint state at once, and is taken back in from "
                               "its own estimate when its data come again)")
+
+
+class CtlSettings(BaseModel):
+    """CSL-CTL and IL-CTL settings (docs/csl-ctl.md)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    tol: float = Field(1e-9, ge=0, description="CSL-CTL: the majorization stops when one step lowers the stress by "
+                       "less than tol times the stress")
+    max_iter: int = Field(100, ge=1, description="CSL-CTL: iteration cap of one majorization")
+    ut_noise: bool = Field(True, description="CSL-CTL: the unscented transform that gives the re-estimate's "
+                           "covariance spans the target ranges' noise as well as the prior; false: the prior only "
+                           "(the paper's 4N+1 sigma points), which leaves the ranges' noise out of the covariance")
+    min_ranges: int = Field(3, ge=2, description="a target is first localized in a tick in which at least this many "
+                            "agents range it")
+    target_process_noise: float = Field(0.0, ge=0, description="random-walk intensity of a target's position "
+                                        "(m^2/s): 0 for a static target")
+    wait: float = Field(0.1, ge=0, description="seconds an agent waits, from its own frame, for the other agents' "
+                        "shares of the tick before it runs the tick with what it has (real time; in lockstep the "
+                        "tick runs when the shares are in, or at the next tick)")
+    forget_after: int = Field(10, ge=1, description="ticks without a share after which an agent stops waiting for "
+                              "another")

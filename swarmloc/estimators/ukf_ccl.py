@@ -22,8 +22,10 @@ class CentralizedUKF:
     def __init__(self, x0: dict[int, np.ndarray], P0: np.ndarray, model="planar-speed-heading", spread: float | None = None):
         self.model = MOTION_MODELS[model] if isinstance(model, str) else model
         self.ids = sorted(x0)
-        self.index = {a: i for i, a in enumerate(self.ids)}
         self.d = self.model.state_dim
+        # Where each block starts in the joint state: the platforms', then any a subclass adds.
+        self.offset = {a: i * self.d for i, a in enumerate(self.ids)}
+        self.size = {a: self.d for a in self.ids}
         self.x = np.concatenate([np.asarray(x0[a], float) for a in self.ids])
         self.P = scipy.linalg.block_diag(*[np.asarray(P0, float)] * len(self.ids))
         self.ut = kalman.UnscentedTransform.for_pair(self.model.state_dim, spread)
@@ -36,9 +38,8 @@ class CentralizedUKF:
         x0 = {a: scenario.prior(a)[0] for a in ids}
         return cls(x0, scenario.prior(ids[0])[1], scenario.agent(ids[0]).model, scenario.estimation.spread)
 
-    def block(self, a: int) -> slice:
-        i = self.index[a]
-        return slice(i * self.d, (i + 1) * self.d)
+    def block(self, a) -> slice:
+        return slice(self.offset[a], self.offset[a] + self.size[a])
 
     def step(self, frames: dict[int, Sensors]) -> None:
         """One tick: every platform's time update, then the tick's measurements in key order."""
@@ -61,8 +62,8 @@ class CentralizedUKF:
             yield m, n, np.array([r.range]), np.array([[r.std**2]])
 
     def update(self, m: int, n: int, z: np.ndarray, R: np.ndarray) -> tuple[float, int]:
-        S = kalman.permuted_cholesky(self.P, [self.index[m], self.index[n]], self.d)
         idx = np.r_[self.block(m), self.block(n)]
+        S = kalman.cholesky_first(self.P, idx)
         z_bar, Pzz, Y = self.ut.measurement_moments(self.x, S, lambda X: self.meas.h_joint(X[..., idx]))
         self.x, self.P, _ = kalman.update(self.x, self.P, S @ Y, Pzz + R, z - z_bar)
         return fusion.nis(z - z_bar, Pzz + R), len(z)
