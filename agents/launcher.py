@@ -386,6 +386,20 @@ def consistency_table(m: dict, algs: list[str]) -> Table:
     return t
 
 
+def target_table(m: dict, algs: list[str]) -> Table:
+    """Each target-localizing estimator's target error (m): averaged over the agents and the
+    ticks they had an estimate, and over the agents at the last tick; and its NEES."""
+    t = Table(title="Target error (m), over agents")
+    for col in ("estimator", "target", "mean", "final", "NEES", "bounds"):
+        t.add_column(col, justify="left" if col in ("estimator", "target") else "right")
+    for a in algs:
+        for o, e in m["estimators"][a].get("targets", {}).items():
+            n = e.get("nees")
+            t.add_row(a, o, *("-" if v is None else f"{v:.2f}" for v in (e["mean_error_m"], e["final_error_m"])),
+                      "-" if not n else f"{n['mean']:.2f}", "" if not n else f"[{n['bounds'][0]:.2f}, {n['bounds'][1]:.2f}]")
+    return t
+
+
 def print_summary(out: Path, crashes: list[Crash]) -> None:
     m = json.loads((out / "metrics.json").read_text())
     algs = REGISTRY.order(m["estimators"])
@@ -407,6 +421,8 @@ def print_summary(out: Path, crashes: list[Crash]) -> None:
     t.add_row("all", *sum(([fmt(m["estimators"][a]["mean_error_m"]), ""] for a in algs), []), style="bold")
     console.print(t)
     console.print(consistency_table(m, algs))
+    if any("targets" in m["estimators"][a] for a in algs):
+        console.print(target_table(m, algs))
     r = m.get("radio", {})
     console.print(f"{m['ticks']} ticks in {m['wall_time_s']:.1f} s ({m['ticks_per_s']:.0f} ticks/s); radio: "
                   f"{r.get('delivered', 0)} frames delivered, dropped {r.get('dropped', {}) or 'none'}")

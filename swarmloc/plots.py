@@ -54,7 +54,70 @@ def plot_run(out: Path, record, algorithms: list[str]) -> list[Path]:
     paths.append(_per_agent(out / "position_error.png", record, t, errors, "position error (m)"))
     nees = {alg: nees_series(record, tr) for alg, tr in traces.items()}
     paths.append(_per_agent(out / "nees.png", record, t, nees, "NEES", log=True, bounds=True))
+    with_targets = {a: tr for a, tr in traces.items() if tr.target_ids is not None}
+    if record.target_ids and with_targets:
+        paths.append(plot_targets(out / "targets.png", record, with_targets))
     return paths
+
+
+def _ellipse(ax, mean, cov, color, label=None, p=0.95):
+    """The p-probability ellipse of a 2D Gaussian."""
+    import scipy.stats
+
+    vals, vecs = np.linalg.eigh(cov)
+    r = np.sqrt(scipy.stats.chi2.ppf(p, 2) * np.clip(vals, 0, None))
+    a = np.linspace(0, 2 * np.pi, 90)
+    pts = mean[:, None] + vecs @ (r[:, None] * np.vstack([np.cos(a), np.sin(a)]))
+    ax.plot(pts[0], pts[1], color=color, lw=1.0, label=label)
+
+
+def plot_targets(path: Path, record, traces: dict) -> Path:
+    """Left: platforms (truth, and the first estimator's estimates), each target's truth and each
+    estimator's estimate of it over time (mean over agents), with every agent's final 95%
+    ellipse. Right: target error against time, mean over agents."""
+    from swarmloc.results import target_errors
+
+    truth, t = record.truth_array(), np.array(record.t)
+    targets = np.stack(record.target_truth)
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(13, 5.5), gridspec_kw={"width_ratios": [1.2, 1]})
+    first = next(iter(traces.values()))
+    for ci, aid in enumerate(record.ids):
+        ax.plot(truth[:, ci, 0], truth[:, ci, 1], "k-", lw=1.2, label="platforms, truth" if ci == 0 else None)
+        ax.annotate(f"A{aid}", truth[0, ci, :2], textcoords="offset points", xytext=(-12, 5))
+        ax.plot(first.mean[:, ci, 0], first.mean[:, ci, 1], color="0.55", lw=0.8,
+                label=f"platforms, {_style(next(iter(traces)))[1]}" if ci == 0 else None)
+    for mi, o in enumerate(record.target_ids):
+        ax.plot(targets[:, mi, 0], targets[:, mi, 1], "k*", ms=12, label="target, truth" if mi == 0 else None)
+        for alg, tr in traces.items():
+            color, label = _style(alg)
+            track = np.nanmean(tr.target_mean[:, :, mi], axis=1) if not np.isnan(tr.target_mean[:, :, mi]).all() else None
+            if track is None:
+                continue
+            ax.plot(track[:, 0], track[:, 1], color=color, lw=0.8, alpha=0.7)
+            for ci in range(len(record.ids)):
+                m, P = tr.target_mean[-1, ci, mi], tr.target_cov[-1, ci, mi]
+                if not np.isnan(m).any():
+                    ax.plot(*m, "o", color=color, ms=3)
+                    _ellipse(ax, m, P, color, f"{label} target, 95%" if (mi == 0 and ci == 0) else None)
+    ax.set_xlabel("x, east (m)")
+    ax.set_ylabel("y, north (m)")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title("Platforms and targets; final target ellipses of every agent")
+    for alg, tr in traces.items():
+        color, label = _style(alg)
+        err, _ = target_errors(record, tr)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # ticks before a target was first localized
+            ax2.plot(t, np.nanmean(err, axis=(1, 2)), color=color, label=label)
+    ax2.set_xlabel("time (s)")
+    ax2.set_ylabel("target error (m), mean over agents")
+    ax2.set_yscale("log")
+    ax2.grid(alpha=0.3)
+    ax2.legend()
+    fig.savefig(path, dpi=DPI, bbox_inches="tight")
+    plt.close(fig)
+    return path
 
 
 def _per_agent(path: Path, record, t, series: dict, ylabel: str, log: bool = False, bounds: bool = False) -> Path:

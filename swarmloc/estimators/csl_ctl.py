@@ -251,10 +251,12 @@ class CslCtlNode(Node):
             self.stats["late_runs"] += 1
             self._run()
         k = sensors.k
-        if k <= self.replica.k:
+        if k <= self.k:
             return self.drop("stale", f"own frame of tick {k}")
         self.first = k if self.first is None else self.first
-        self.pending = k
+        # The frame is handled (lockstep's `done` says so) though the tick runs when the shares are in.
+        self.k = self.pending = k
+        self.nis = []
         self.frames.setdefault(k, {})[self.id] = sensors
         out.append(Send(self.share(k, sensors), None))
         if not self._ready(k):
@@ -303,18 +305,18 @@ class CslCtlNode(Node):
             del self.frames[old]
         self.replica.step(frames, k)
         b = self.replica.block(self.id)
-        self.k, self.x, self.P = k, self.replica.x[b].copy(), self.replica.P[b, b].copy()
+        self.x, self.P = self.replica.x[b].copy(), self.replica.P[b, b].copy()
         self.nis = self.replica.nis.get(self.id, [])
 
     def estimate(self) -> Estimate:
         """After the tick has run, this agent's block and the targets of the replica. While the
         tick waits for shares, its own prediction on its own odometry (no NIS)."""
         targets = self.replica.target_estimates()
-        if self.pending is not None and self.pending > self.k and self.id in self.frames.get(self.pending, {}):
+        if self.pending is not None and self.pending > self.replica.k and self.id in self.frames.get(self.pending, {}):
             frame = self.frames[self.pending][self.id]
             x, F, Q = self.model.predict(self.x, odometry_of(frame))
             return Estimate(self.pending, x, F @ self.P @ F.T + Q, (), targets)
-        return Estimate(self.k, self.x.copy(), self.P.copy(), (), targets)
+        return Estimate(self.replica.k, self.x.copy(), self.P.copy(), (), targets)
 
     def resume(self, k, x, P) -> None:
         """A restart keeps only this agent's own estimate: the others come back into the replica
