@@ -72,6 +72,7 @@ class World:
             stop = self.sc.world.stop_distance
             if stop is not None:
                 dry = World(self.sc, self.seed)
+                dry.step()  # tick 0, the start
                 for k in range(1, self.sc.clock.steps + 1):
                     dry.step()
                     if dry.nearest_target() <= stop:

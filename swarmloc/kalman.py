@@ -18,6 +18,17 @@ def predict(x: np.ndarray, P: np.ndarray, F: np.ndarray, Q: np.ndarray) -> tuple
     return x, F @ P @ F.T + Q
 
 
+def block_diag(blocks: list[np.ndarray]) -> np.ndarray:
+    """scipy.linalg.block_diag for square blocks, without importing scipy.linalg (agents that
+    build a joint state need not carry it)."""
+    out = np.zeros((sum(b.shape[0] for b in blocks),) * 2)
+    i = 0
+    for b in blocks:
+        out[i:i + b.shape[0], i:i + b.shape[0]] = b
+        i += b.shape[0]
+    return out
+
+
 def gain(Pxz: np.ndarray, Pz: np.ndarray) -> np.ndarray:
     """K = Pxz Pz^-1 (eq. 12), solved rather than inverted."""
     return np.linalg.solve(Pz.T, Pxz.T).T

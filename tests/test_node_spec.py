@@ -45,7 +45,7 @@ def test_a_spec_names_only_swarmloc_classes():
 
 def test_the_agent_process_imports_no_scenario_tooling():
     code = ("import sys, agents.daemon, swarmloc.estimators.ukf_dcl, swarmloc.estimators.ekf_ci, "
-            "swarmloc.estimators.fusion_centre, swarmloc.estimators.il; "
+            "swarmloc.estimators.fusion_centre, swarmloc.estimators.il, swarmloc.estimators.csl_ctl; "
             "print(sorted({m.split('.')[0] for m in sys.modules} & {'pydantic', 'typer', 'yaml', 'rich', 'scipy', "
             "'matplotlib', 'swarmloc.scenario'}), 'swarmloc.scenario' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout

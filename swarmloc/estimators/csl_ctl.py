@@ -110,7 +110,7 @@ class JointCslCtl(CentralizedUKF):
         for _ in self.targets:
             Fs.append(np.eye(self.p))
             Qs.append(np.eye(self.p) * self.q_target * dt)
-        F, Q = _block_diag(Fs), _block_diag(Qs)
+        F, Q = kalman.block_diag(Fs), kalman.block_diag(Qs)
         self.x, self.P = kalman.predict(self.x, self.P, F, Q)
         self.k = k
         self.nis = {a: [] for a in self.agents}
@@ -227,7 +227,7 @@ class CslCtlNode(Node):
         self.pending: int | None = None  # the tick whose shares are being gathered
         self.heard: dict[int, int] = {}
         self.first: int | None = None
-        self.stats = {"late_runs": 0}
+        self.stats = {"incomplete_runs": 0}  # ticks run without every expected share
 
     def _replica(self, x0: dict, P0) -> JointCslCtl:
         s = self.settings
@@ -248,7 +248,6 @@ class CslCtlNode(Node):
     def step(self, sensors: Sensors) -> list[Send]:
         out: list = []
         if self.pending is not None:
-            self.stats["late_runs"] += 1
             self._run()
         k = sensors.k
         if k <= self.k:
@@ -300,6 +299,7 @@ class CslCtlNode(Node):
 
     def _run(self) -> None:
         k, self.pending = self.pending, None
+        self.stats["incomplete_runs"] += not self._ready(k)
         frames = self.frames.pop(k, {})
         for old in [t for t in self.frames if t <= k]:
             del self.frames[old]
@@ -312,8 +312,8 @@ class CslCtlNode(Node):
         """After the tick has run, this agent's block and the targets of the replica. While the
         tick waits for shares, its own prediction on its own odometry (no NIS)."""
         targets = self.replica.target_estimates()
-        if self.pending is not None and self.pending > self.replica.k and self.id in self.frames.get(self.pending, {}):
-            frame = self.frames[self.pending][self.id]
+        frame = self.frames.get(self.pending, {}).get(self.id) if self.pending is not None else None
+        if frame is not None and frame.odometry is not None and self.pending > self.replica.k:
             x, F, Q = self.model.predict(self.x, odometry_of(frame))
             return Estimate(self.pending, x, F @ self.P @ F.T + Q, (), targets)
         return Estimate(self.replica.k, self.x.copy(), self.P.copy(), (), targets)
@@ -347,7 +347,7 @@ class IlCtlNode(IndependentNode):
         self.first: int | None = None
         self.targets: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}  # o -> (mean, cov, tick)
         self.dt = 0.0  # the clock's tick length, from the odometry: a static target's process noise
-        self.stats = {"late_runs": 0, "ls_failed": 0, "unused_target_ranges": 0}
+        self.stats = {"incomplete_runs": 0, "ls_failed": 0, "unused_target_ranges": 0}
 
     @classmethod
     def spec(cls, scenario, aid, settings=None) -> NodeSpec:
@@ -358,7 +358,6 @@ class IlCtlNode(IndependentNode):
 
     def step(self, sensors) -> list[Send]:
         if self.pending is not None:
-            self.stats["late_runs"] += 1
             self._run()
         if sensors.k <= self.done:
             return self.drop("stale", f"own frame of tick {sensors.k}")
@@ -406,6 +405,7 @@ class IlCtlNode(IndependentNode):
 
     def _run(self) -> None:
         k, self.pending = self.pending, None
+        self.stats["incomplete_runs"] += not self.expected(k) <= set(self.fixes.get(k, {}))
         fixes = self.fixes.pop(k, {})
         for old in [t for t in self.fixes if t <= k]:
             del self.fixes[old]
@@ -469,12 +469,3 @@ def _ctl_kwargs(settings) -> dict:
                 target_process_noise=getattr(settings, "target_process_noise", 0.0),
                 min_ranges=getattr(settings, "min_ranges", 3))
 
-
-def _block_diag(blocks: list[np.ndarray]) -> np.ndarray:
-    n = sum(b.shape[0] for b in blocks)
-    out = np.zeros((n, n))
-    i = 0
-    for b in blocks:
-        out[i:i + b.shape[0], i:i + b.shape[0]] = b
-        i += b.shape[0]
-    return out

@@ -8,7 +8,6 @@ factors P with the measuring and measured platform first (eq. 17).
 from __future__ import annotations
 
 import numpy as np
-import scipy.linalg
 
 from swarmloc import fusion, kalman
 from swarmloc.messages import Sensors
@@ -27,7 +26,7 @@ class CentralizedUKF:
         self.offset = {a: i * self.d for i, a in enumerate(self.ids)}
         self.size = {a: self.d for a in self.ids}
         self.x = np.concatenate([np.asarray(x0[a], float) for a in self.ids])
-        self.P = scipy.linalg.block_diag(*[np.asarray(P0, float)] * len(self.ids))
+        self.P = kalman.block_diag([np.asarray(P0, float)] * len(self.ids))
         self.ut = kalman.UnscentedTransform.for_pair(self.model.state_dim, spread)
         self.meas = Range(self.model)
         self.k = -1
@@ -49,7 +48,7 @@ class CentralizedUKF:
             self.x[self.block(a)] = x
             Fs.append(F)
             Qs.append(Q)
-        self.x, self.P = kalman.predict(self.x, self.P, scipy.linalg.block_diag(*Fs), scipy.linalg.block_diag(*Qs))
+        self.x, self.P = kalman.predict(self.x, self.P, kalman.block_diag(Fs), kalman.block_diag(Qs))
         self.k = frames[self.ids[0]].k
         self.nis = {a: [] for a in self.ids}
         for m, n, z, R in self.measurements(frames):

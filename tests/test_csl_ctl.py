@@ -1,0 +1,228 @@
+"""CSL-CTL and IL-CTL (Wang et al. 2022): the world's targets, the unicycle model, the joint
+re-estimate, and the distributed replicas against their offline references."""
+
+import numpy as np
+import pytest
+
+from helpers import in_process
+from netsim.sim import Simulation
+from swarmloc import ctl
+from swarmloc import scenario as S
+from swarmloc.estimators.csl_ctl import BroadcastReference, CslCtlNode, IlCtlNode, JointCslCtl, trilaterate
+from swarmloc.estimators.ukf_ccl import CentralizedUKF
+from swarmloc.messages import CslShare, Sensors
+from swarmloc.models import MOTION_MODELS, Odometry
+from swarmloc.results import RunRecord, target_errors
+
+
+def near(duration=20.0, **over):
+    """wang2022 with the target 350 m ahead, so agents range it from the first tick."""
+    return S.load("wang2022").with_overrides(**{"clock.duration": duration,
+                                                "world.targets": [{"id": 0, "position": [350.0, 0.0]}], **over})
+
+
+def recorded(sc):
+    sim, record = Simulation(sc), RunRecord.for_scenario(sc)
+    for _ in range(sim.steps + 1):
+        k, t, frames = sim.tick()
+        record.add_tick(k, t, frames, sim.truth(), sim.targets())
+    return record, sim
+
+
+# --------------------------------------------------------------------------- world and models
+
+
+def test_planar_pose_jacobian_matches_finite_differences():
+    model = MOTION_MODELS["planar-pose"]
+    u = Odometry(0.5, 1.3, 0.0, 0.5, 0.0, 0.04, 0.01)
+    x = np.array([3.0, -2.0, 0.7])
+    _, F, _ = model.predict(x, u)
+    eps = 1e-6
+    num = np.column_stack([(model.predict(x + eps * e, u)[0] - model.predict(x - eps * e, u)[0]) / (2 * eps)
+                           for e in np.eye(3)])
+    assert np.abs(F - num).max() < 1e-8
+    # The heading error wraps: 359 deg against 1 deg is 2 deg off, not 358.
+    assert model.error(np.array([0, 0, np.radians(359)]), np.array([0, 0, np.radians(1)]))[2] == pytest.approx(np.radians(-2))
+
+
+def test_targets_are_ranged_within_reach_with_the_detection_probability():
+    sc = near(60.0, **{"sensors.target_range.max_range": 355.0})
+    record, sim = recorded(sc)
+    truth = np.stack(record.target_truth)
+    assert truth.shape == (121, 1, 2) and np.all(truth == [350.0, 0.0])
+    seen = within = 0
+    for ti, frames in enumerate(record.sensors[1:], start=1):
+        for ci, a in enumerate(record.ids):
+            dist = np.linalg.norm(record.truth[ti][ci, :2] - truth[ti, 0])
+            ranges = frames[a].targets
+            assert not ranges or dist <= 355.0  # never beyond the detection range
+            within += dist <= 355.0
+            seen += len(ranges)
+            for r in ranges:
+                assert abs(r.range - dist) < 6 * 10.0 and r.std == 10.0
+    assert within > 100
+    p = seen / within  # 0.8 detection probability, binomial standard error
+    assert abs(p - 0.8) < 4 * np.sqrt(0.8 * 0.2 / within)
+
+
+def test_a_moving_target_moves_and_the_run_stops_at_the_stop_distance():
+    sc = near(300.0, **{"world.targets": [{"id": 0, "position": [350.0, 0.0], "velocity": [-1.0, 0.5]}]})
+    record, sim = recorded(sc)
+    truth = np.stack(record.target_truth)[:, 0]
+    assert np.allclose(truth[-1] - truth[0], np.array([-1.0, 0.5]) * record.t[-1])
+    nearest = [min(np.linalg.norm(record.truth[ti][:, :2] - truth[ti], axis=1)) for ti in range(len(record.k))]
+    assert nearest[-1] <= 200.0 < nearest[-2]  # the first tick within the stop distance is the last
+    assert sim.steps == record.k[-1] < sc.clock.steps
+
+
+def test_target_fields_are_validated():
+    base = S.load("wang2022").model_dump()
+    with pytest.raises(S.ScenarioError, match="world.targets.0"):
+        S.parse({**base, "world": {**base["world"], "targets": [{"id": 0, "position": [1.0]}]}})
+    with pytest.raises(S.ScenarioError, match="target ids must be unique"):
+        S.parse({**base, "world": {**base["world"], "targets": [{"id": 0, "position": [1.0, 2.0]}] * 2}})
+    with pytest.raises(S.ScenarioError, match="stop_distance needs targets"):
+        S.parse({**base, "world": {**base["world"], "targets": []}})
+    with pytest.raises(S.ScenarioError, match="sensors.target_range.probability"):
+        S.parse({**base, "sensors": {**base["sensors"], "target_range": {"probability": 1.5}}})
+
+
+# --------------------------------------------------------------------------- the joint re-estimate
+
+
+def test_trilaterate_is_exact_on_exact_ranges():
+    anchors = np.array([[0.0, 0.0], [100.0, 20.0], [30.0, -80.0], [60.0, 60.0]])
+    target = np.array([400.0, 35.0])
+    assert np.allclose(trilaterate(anchors, np.linalg.norm(anchors - target, axis=1)), target, atol=1e-8)
+    with pytest.raises(ValueError):
+        trilaterate(anchors[:2], np.ones(2))
+
+
+def test_headings_follow_the_positions_as_a_kalman_update_would():
+    """When the re-estimate of the positions is a linear Gaussian update, moving the rest of
+    the state (headings) by its regression on the positions is the full Kalman update."""
+    rng = np.random.default_rng(4)
+    joint = JointCslCtl({1: np.zeros(3), 2: np.zeros(3)}, np.eye(3), "planar-pose")
+    A = rng.normal(size=(6, 6))
+    joint.P = A @ A.T + np.eye(6)
+    joint.x = rng.normal(size=6)
+    p_idx, r_idx = np.array([0, 1, 3, 4]), np.array([2, 5])
+    H = np.zeros((4, 6))
+    H[np.arange(4), p_idx] = 1.0  # z = positions + v
+    R = np.diag([0.3, 0.5, 0.2, 0.4])
+    z = rng.normal(size=4)
+    S_ = H @ joint.P @ H.T + R
+    K = joint.P @ H.T @ np.linalg.inv(S_)
+    x_kf, P_kf = joint.x + K @ (z - H @ joint.x), joint.P - K @ S_ @ K.T
+
+    class Res:
+        x = x_kf[p_idx].reshape(2, 2)
+        cov = P_kf[np.ix_(p_idx, p_idx)]
+
+    x, P = joint._with_rest(Res, p_idx, r_idx, 0)
+    assert np.abs(x - x_kf).max() < 1e-12 and np.abs(P - P_kf).max() < 1e-12
+
+
+def test_without_target_ranges_csl_ctl_is_the_centralized_ukf():
+    sc = near(20.0, **{"sensors.target_range.probability": 0.0, "sensors.range.probability": 1.0})
+    record, _ = recorded(sc)
+    joint, ccl = JointCslCtl.from_scenario(sc, record.ids), CentralizedUKF.from_scenario(sc, record.ids)
+    for frames in record.sensors:
+        joint.step(frames)
+        ccl.step(frames)
+        assert np.array_equal(joint.x, ccl.x) and np.array_equal(joint.P, ccl.P)
+    assert joint.targets == [] and joint.stats["ctl_ticks"] == 0
+
+
+def test_ctl_pulls_the_target_in_and_agrees_with_its_covariance():
+    """Over 8 seeds: the target is localized from the first tick, its final error is of the
+    order its covariance claims, and CSL-CTL never loses it (every CTL step succeeded)."""
+    nees = []
+    for seed in range(8):
+        sc = near(30.0, seed=seed)
+        record, _ = recorded(sc)
+        joint = JointCslCtl.from_scenario(sc, record.ids)
+        for frames in record.sensors:
+            joint.step(frames)
+        assert joint.targets == [0] and joint.stats["ctl_failed"] == 0
+        e = joint.x[joint.block(("target", 0))] - [350.0, 0.0]
+        P = joint.P[joint.block(("target", 0)), joint.block(("target", 0))]
+        nees.append(e @ np.linalg.solve(P, e))
+        assert np.linalg.norm(e) < 25.0
+    # Mean NEES of 8 two-dof values: a consistent filter falls inside [0.9, 3.4] (chi2(16)/8, 99%).
+    assert 0.5 < np.mean(nees) < 3.4, nees
+
+
+# --------------------------------------------------------------------------- distributed = reference
+
+
+@pytest.mark.parametrize("name", ["csl-ctl", "il-ctl"])
+def test_every_agent_equals_the_offline_reference_bit_for_bit(name):
+    sc = near(20.0)
+    record, nodes, _ = in_process(sc, name)
+    ref_record, _ = recorded(sc)
+    from swarmloc.estimators import REGISTRY
+
+    ref = REGISTRY[name].make_reference(sc, ref_record.ids)
+    got, want = record.trace(name), None
+    means, tmeans = [], []
+    for frames in ref_record.sensors:
+        ref.step(frames)
+        es = [ref.estimate(a) for a in ref_record.ids]
+        means.append([e.mean for e in es])
+        tmeans.append([e.targets[0][1] if e.targets else np.full(2, np.nan) for e in es])
+    want = np.array(means)
+    assert np.array_equal(got.mean, want)
+    assert np.array_equal(got.target_mean[:, :, 0], np.array(tmeans), equal_nan=True)
+    assert not np.isnan(got.target_mean[1:]).any()  # every agent had the target from tick 1
+    assert all(not n.drops for n in nodes.values())
+
+
+def test_a_malformed_or_foreign_share_is_counted_and_changes_nothing():
+    sc = near(5.0)
+    node = CslCtlNode.spec(sc, 1).build()
+    twin = CslCtlNode.spec(sc, 1).build()
+    frame = Sensors(1, 0.5, None, [])
+    for n in (node, twin):
+        n.step(Sensors(0, 0.0, None, []))
+    node.receive(9, CslShare(1, frame))  # not an agent of the swarm
+    node.receive(2, CslShare(2, frame))  # tick of the share and of its frame differ
+    node.receive(2, "not a share")
+    assert node.drops == {"invalid": 2, "unexpected": 1}
+    assert np.array_equal(node.estimate().mean, twin.estimate().mean)
+
+
+def test_loss_a_cut_and_sparse_detection_degrade_without_stalling():
+    """10% frame loss, agent 2 cut from 1 and 3 for 10 s, detection p = 0.5: every agent has an
+    estimate every tick, the ticks whose shares were lost run late, the target stays found."""
+    sc = near(40.0, **{"sensors.target_range.probability": 0.5,
+                       "faults": [{"at": 0.0, "action": "loss", "probability": 0.1},
+                                  {"at": 10.0, "action": "cut", "link": [1, 2], "duration": 10.0},
+                                  {"at": 10.0, "action": "cut", "link": [2, 3], "duration": 10.0}]})
+    record, nodes, _ = in_process(sc, "csl-ctl")
+    tr = record.trace("csl-ctl")
+    assert not np.isnan(tr.mean).any()
+    assert all(n.stats["incomplete_runs"] > 0 for n in nodes.values())
+    assert sum(n.replica.stats["missing_frames"] for n in nodes.values()) > 0
+    err, nees = target_errors(record, tr)
+    assert np.nanmax(err[-1]) < 40.0
+    assert all(n.replica.targets == [0] for n in nodes.values())
+
+
+@pytest.mark.slow
+def test_lockstep_over_zenoh_equals_in_process(cli, tmp_path):
+    sc = near(30.0)
+    path = tmp_path / "near.yaml"
+    path.write_text(sc.to_yaml())
+    out = tmp_path / "run"
+    p = cli.run("run", str(path), "--out", str(out), "--port", str(cli.port), "--swarm", cli.swarm, "--no-plots",
+                check=True, timeout=300)
+    assert "Target error" in p.stdout
+    with np.load(out / "estimates" / "csl-ctl.npz") as f:
+        zen = {k: f[k] for k in f.files}
+    record, _, _ = in_process(sc, "csl-ctl")
+    ref = record.trace("csl-ctl")
+    assert np.array_equal(zen["mean"], ref.mean) and np.array_equal(zen["cov"], ref.cov)
+    assert np.array_equal(zen["target_mean"], ref.target_mean, equal_nan=True)
+    with np.load(out / "truth.npz") as f:
+        assert np.array_equal(f["target_position"], np.stack(record.target_truth))
