@@ -278,8 +278,10 @@ def run_swarm(sc: Scenario, out: Path | None, swarm: str, port: int | None, plot
 def _start(procs: Swarm, sc: Scenario, out: Path, swarm: str, endpoint: str, plots: bool, restart_crashed: bool) -> None:
     scenario_file = out / "logs" / "scenario.input.yaml"
     scenario_file.write_text(sc.to_yaml())
-    console.print(f"[bold]swarmloc run[/] {sc.name}: {len(sc.world.agents)} agents, {sc.clock.steps + 1} ticks (0..{sc.clock.steps}) of "
-                  f"{sc.clock.dt:g} s, {sc.clock.mode}, seed {sc.seed}, Zenoh router {endpoint}, swarm '{swarm}'")
+    stop = "" if sc.world.stop_distance is None else \
+        f" at most, stopping when an agent is within {sc.world.stop_distance:g} m of a target,"
+    console.print(f"[bold]swarmloc run[/] {sc.name}: {len(sc.world.agents)} agents, {sc.clock.steps + 1} ticks (0..{sc.clock.steps}){stop} "
+                  f"of {sc.clock.dt:g} s, {sc.clock.mode}, seed {sc.seed}, Zenoh router {endpoint}, swarm '{swarm}'")
     net = procs.start_netsim(["-m", "netsim", str(scenario_file), "--swarm", swarm, "--listen", endpoint, "--out", str(out),
                               *([] if plots else ["--no-plots"]), *(["--await-rejoin"] if restart_crashed else [])])
     _wait_listening(int(endpoint.rsplit(":", 1)[1]), net)

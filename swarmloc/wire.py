@@ -24,7 +24,7 @@ from typing import Any, ClassVar
 import msgpack
 import numpy as np
 
-SCHEMA_VERSION = 2  # 2: UAS sensor fields, clock speed, estimate NIS, fusion-centre payloads
+SCHEMA_VERSION = 3  # 2: UAS sensor fields, clock speed, estimate NIS, fusion-centre payloads; 3: targets, turn rate, CSL-CTL payloads
 MAX_FRAME_BYTES = 64 * 1024
 MAX_ARRAY_ELEMENTS = 4096
 MAX_COLLECTION = 1024

@@ -8,7 +8,7 @@ from helpers import in_process
 from netsim.sim import Simulation
 from swarmloc import ctl
 from swarmloc import scenario as S
-from swarmloc.estimators.csl_ctl import BroadcastReference, CslCtlNode, IlCtlNode, JointCslCtl, trilaterate
+from swarmloc.estimators.csl_ctl import CslCtlNode, JointCslCtl, first_fix, trilaterate
 from swarmloc.estimators.ukf_ccl import CentralizedUKF
 from swarmloc.messages import CslShare, Sensors
 from swarmloc.models import MOTION_MODELS, Odometry
@@ -96,6 +96,20 @@ def test_trilaterate_is_exact_on_exact_ranges():
     assert np.allclose(trilaterate(anchors, np.linalg.norm(anchors - target, axis=1)), target, atol=1e-8)
     with pytest.raises(ValueError):
         trilaterate(anchors[:2], np.ones(2))
+
+
+def test_a_first_fix_takes_the_right_side_or_waits():
+    """Agents on an arc 400 m from the target (wang2022's geometry) tell the target from its
+    mirror image; agents almost on a line, with 10 m range noise, cannot, and the fix waits."""
+    target = np.array([500.0, 0.0])
+    bearings = np.radians([160.0, 173.0, 187.0, 200.0])
+    arc = target + 400.0 * np.column_stack([np.cos(bearings), np.sin(bearings)])
+    z = np.linalg.norm(arc - target, axis=1)
+    assert np.linalg.norm(first_fix(arc, z, np.full(4, 10.0)) - target) < 1e-6
+    line = np.column_stack([np.full(4, 100.0), [-150.0, -50.0, 50.0, 150.0]]) + [[0.3], [0.0], [-0.2], [0.1]]
+    z = np.linalg.norm(line - target, axis=1) + np.array([4.0, -7.0, 2.0, 5.0])
+    with pytest.raises(ValueError, match="mirror"):
+        first_fix(line, z, np.full(4, 10.0))
 
 
 def test_headings_follow_the_positions_as_a_kalman_update_would():

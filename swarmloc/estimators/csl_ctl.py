@@ -10,7 +10,7 @@ tick's KF-CSL starts from it: the paper's "parallel integration".
 Distributed by replication: every agent broadcasts its sensor frame of tick k (`csl.share`:
 odometry, ranges to agents, ranges to targets) and runs the whole joint problem on the shares
 it holds, its own included. With every share delivered, every agent's replica is the same
-arithmetic on the same numbers as the offline reference (`CslCtlReference`), so they agree bit
+arithmetic on the same numbers as the offline reference (`JointCslCtl` on every frame), so they agree bit
 for bit. A share that does not come is a gap in that replica only: the sender's position is
 carried over with the covariance of the farthest it could have gone, its measurements are not
 used; replicas then differ, and each stays a consistent estimate of what it was told.
@@ -39,6 +39,34 @@ from swarmloc.node import Estimate, Node, NodeSpec, Send, Timer, odometry_of
 
 RUN = "ctl.run"
 MAX_AHEAD = 4  # ticks of early shares kept (real time: a peer may run ahead); beyond: dropped
+
+
+def first_fix(anchors: np.ndarray, z: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """A target's first position from ranges to anchors taken as exact: the trilateration and
+    its mirror image across the anchors' principal axis, each refined by least squares; the
+    better fit, if it is clearly better (cost lower by 9, a 3-sigma range residual). Anchors
+    that lie nearly on a line fit both images almost alike: ValueError, and the target waits
+    for a tick with better geometry instead of settling on its mirror image for good."""
+    a = np.asarray(anchors, float)
+    start = trilaterate(a, z)
+    centre = a.mean(axis=0)
+    axis = np.linalg.svd(a - centre)[2][0]
+    d = start - centre
+    mirror = centre + 2 * (d @ axis) * axis - d
+    fits = []
+    for x0 in (start, mirror):
+        try:
+            x, _ = ctl.ls_target(a, z, sigma, x0)
+        except ValueError:
+            continue
+        r = (np.linalg.norm(x - a, axis=1) - z) / sigma
+        fits.append((float(r @ r), x))
+    if not fits:
+        raise ValueError("first_fix: no least-squares solution")
+    fits.sort(key=lambda f: f[0])
+    if len(fits) == 2 and fits[1][0] - fits[0][0] < 9.0 and np.linalg.norm(fits[1][1] - fits[0][1]) > 3 * sigma.max():
+        raise ValueError("first_fix: the target and its mirror image fit the ranges alike")
+    return fits[0][1]
 
 
 def trilaterate(anchors: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -75,7 +103,7 @@ class JointCslCtl(CentralizedUKF):
         self.p = self.model.position_dim
         self.last_odometry: dict[int, tuple] = {}  # a -> (dt, |speed|, speed std, |turn rate|, its std)
         self.stats = {"ctl_ticks": 0, "majorizations": 0, "unconverged": 0, "unused_target_ranges": 0,
-                      "ctl_failed": 0, "missing_frames": 0}
+                      "ctl_failed": 0, "missing_frames": 0, "ambiguous_first_fix": 0}
 
     @classmethod
     def from_scenario(cls, scenario, ids, settings=None):
@@ -124,17 +152,23 @@ class JointCslCtl(CentralizedUKF):
         rows = [(a, r.target, r.range, r.std) for a in sorted(frames) if a in self.offset for r in frames[a].targets]
         if not rows:
             return
-        known = [o for o in self.targets if any(r[1] == o for r in rows)]
-        new = []
+        p = self.p
+        keys = self.agents + [("target", o) for o in self.targets]
+        fixes = {}  # new target -> its first position, from the agents' positions taken as exact
         for o in sorted({r[1] for r in rows} - set(self.targets)):
-            if len({r[0] for r in rows if r[1] == o}) >= self.min_ranges:
-                new.append(o)
-        used = [r for r in rows if r[1] in self.targets or r[1] in new]
+            mine = [r for r in rows if r[1] == o]
+            if len({r[0] for r in mine}) < self.min_ranges:
+                continue
+            try:
+                fixes[o] = first_fix(np.array([self.x[self.offset[a]:self.offset[a] + p] for a, *_ in mine]),
+                                     np.array([r[2] for r in mine]), np.array([r[3] for r in mine]))
+            except ValueError:
+                self.stats["ambiguous_first_fix"] += 1
+        new = list(fixes)
+        used = [r for r in rows if r[1] in self.targets or r[1] in fixes]
         self.stats["unused_target_ranges"] += len(rows) - len(used)
         if not used:
             return
-        p = self.p
-        keys = self.agents + [("target", o) for o in self.targets]
         p_idx = np.concatenate([np.arange(self.offset[key], self.offset[key] + p) for key in keys])
         r_idx = np.setdiff1d(np.arange(self.x.size), p_idx)  # headings, if the model has them
         node_of = {key: i for i, key in enumerate(keys)}
@@ -145,11 +179,9 @@ class JointCslCtl(CentralizedUKF):
         prior[: len(keys)] = self.x[p_idx].reshape(-1, p)
         Ppp = self.P[np.ix_(p_idx, p_idx)]
         x0 = prior.copy()
+        for o, x in fixes.items():
+            x0[node_of[("target", o)]] = x
         try:
-            for o in new:
-                mine = [r for r in used if r[1] == o]
-                x0[node_of[("target", o)]] = trilaterate(np.array([prior[node_of[r[0]]] for r in mine]),
-                                                         np.array([r[2] for r in mine]))
             for a, o, z, s in used:  # NIS of the ranges to targets already in the state (linearised)
                 if o in self.targets:
                     ia, io = node_of[a], node_of[("target", o)]
@@ -158,7 +190,7 @@ class JointCslCtl(CentralizedUKF):
                     H = np.zeros(p_idx.size)
                     H[ia * p:(ia + 1) * p], H[io * p:(io + 1) * p] = u, -u
                     nu = np.array([z - np.linalg.norm(diff)])
-                    self.nis[a].append((fusion.nis(nu, np.array([[H @ Ppp @ H + s**2]])), 1))
+                    self.nis.setdefault(a, []).append((fusion.nis(nu, np.array([[H @ Ppp @ H + s**2]])), 1))
             edges = ctl.Edges(np.array([node_of[a] for a, *_ in used]), np.array([node_of[("target", o)] for _, o, *_ in used]),
                               np.array([r[2] for r in used]), np.array([r[3] for r in used]))
             res = ctl.estimate(prior, Ppp, edges, x0, has_prior=np.arange(K) < len(keys), noise=self.ut_noise,
@@ -227,7 +259,12 @@ class CslCtlNode(Node):
         self.pending: int | None = None  # the tick whose shares are being gathered
         self.heard: dict[int, int] = {}
         self.first: int | None = None
-        self.stats = {"incomplete_runs": 0}  # ticks run without every expected share
+        self._stats = {"incomplete_runs": 0}  # ticks run without every expected share
+
+    @property
+    def stats(self) -> dict:
+        """The node's counters and its replica's (the agent's `stats` query reports both)."""
+        return {**self._stats, **self.replica.stats}
 
     def _replica(self, x0: dict, P0) -> JointCslCtl:
         s = self.settings
@@ -299,7 +336,7 @@ class CslCtlNode(Node):
 
     def _run(self) -> None:
         k, self.pending = self.pending, None
-        self.stats["incomplete_runs"] += not self._ready(k)
+        self._stats["incomplete_runs"] += not self._ready(k)
         frames = self.frames.pop(k, {})
         for old in [t for t in self.frames if t <= k]:
             del self.frames[old]
@@ -389,7 +426,7 @@ class IlCtlNode(IndependentNode):
         self.heard[src] = max(self.heard.get(src, msg.k), msg.k)
         if msg.k <= self.done:
             return self.drop("late", f"fix of tick {msg.k} from {src}")
-        if msg.k > max(self.pending or self.done, self.done) + MAX_AHEAD:
+        if msg.k > (self.pending if self.pending is not None else self.done) + MAX_AHEAD:
             return self.drop("early", f"fix of tick {msg.k} from {src}")
         tick = self.fixes.setdefault(msg.k, {})
         if src in tick:
@@ -423,10 +460,10 @@ class IlCtlNode(IndependentNode):
                 self.stats["unused_target_ranges"] += len(mine)
                 continue
             try:
-                x0 = prior[0] if prior is not None else trilaterate(anchors, z)
-                x, P = ctl.ls_target(anchors, z, s, x0, prior)
+                x, P = ctl.ls_target(anchors, z, s, prior[0], prior) if prior is not None else \
+                    ctl.ls_target(anchors, z, s, first_fix(anchors, z, s))
             except ValueError:
-                self.stats["ls_failed"] += 1
+                self.stats["ls_failed"] += 1  # an ambiguous first fix included
                 continue
             self.targets[o] = (x, P, k)
 
