@@ -41,32 +41,52 @@ RUN = "ctl.run"
 MAX_AHEAD = 4  # ticks of early shares kept (real time: a peer may run ahead); beyond: dropped
 
 
-def first_fix(anchors: np.ndarray, z: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-    """A target's first position from ranges to anchors taken as exact: the trilateration and
-    its mirror image across the anchors' principal axis, each refined by least squares; the
-    better fit, if it is clearly better (cost lower by 9, a 3-sigma range residual). Anchors
-    that lie nearly on a line fit both images almost alike: ValueError, and the target waits
-    for a tick with better geometry instead of settling on its mirror image for good."""
-    a = np.asarray(anchors, float)
-    start = trilaterate(a, z)
-    centre = a.mean(axis=0)
-    axis = np.linalg.svd(a - centre)[2][0]
-    d = start - centre
-    mirror = centre + 2 * (d @ axis) * axis - d
-    fits = []
-    for x0 in (start, mirror):
-        try:
-            x, _ = ctl.ls_target(a, z, sigma, x0)
-        except ValueError:
-            continue
-        r = (np.linalg.norm(x - a, axis=1) - z) / sigma
-        fits.append((float(r @ r), x))
-    if not fits:
-        raise ValueError("first_fix: no least-squares solution")
-    fits.sort(key=lambda f: f[0])
-    if len(fits) == 2 and fits[1][0] - fits[0][0] < 9.0 and np.linalg.norm(fits[1][1] - fits[0][1]) > 3 * sigma.max():
-        raise ValueError("first_fix: the target and its mirror image fit the ranges alike")
-    return fits[0][1]
+class FirstFix:
+    """A new target's first position, from ranges to anchors taken as exact, decided over ticks.
+
+    Agents that drive at a target side by side lie nearly on a line across the line of sight,
+    and the ranges of one tick fit the target and its mirror image across that line almost
+    alike, the more so when the anchors' positions have drifted. So both images are kept: the
+    trilateration of the first tick and its mirror across the anchors' principal axis, each
+    refined by least squares and then carried tick by tick with its covariance (its earlier
+    estimate as the prior). Each image scores the tick's ranges at its position before the tick
+    (squared normalised residuals); once one image's total is lower by `margin`, or the two have
+    met, it is the fix. A lone image (the other failed to converge) wins at once."""
+
+    def __init__(self, margin: float = 25.0):
+        self.margin = margin
+        self.images: dict[int, list[list]] = {}  # target -> [[x, cov, score], ...]
+
+    def update(self, o: int, anchors: np.ndarray, z: np.ndarray, sigma: np.ndarray):
+        """(x, cov) once decided, else None; ValueError if the anchors cannot start a fix."""
+        images = self.images.get(o)
+        if images is None:
+            start = trilaterate(anchors, z)
+            centre = anchors.mean(axis=0)
+            axis = np.linalg.svd(anchors - centre)[2][0]
+            d = start - centre
+            images = []
+            for x0 in (start, centre + 2 * (d @ axis) * axis - d):
+                try:
+                    x, P = ctl.ls_target(anchors, z, sigma, x0)
+                except ValueError:
+                    continue
+                r = (np.linalg.norm(x - anchors, axis=1) - z) / sigma
+                images.append([x, P, float(r @ r)])
+            if not images:
+                raise ValueError("first fix: no least-squares solution")
+        else:
+            for im in images:
+                r = (np.linalg.norm(im[0] - anchors, axis=1) - z) / sigma
+                im[2] += float(r @ r)
+                im[0], im[1] = ctl.ls_target(anchors, z, sigma, im[0], (im[0], im[1]))
+        images.sort(key=lambda im: im[2])
+        if len(images) == 1 or images[1][2] - images[0][2] >= self.margin or \
+                np.linalg.norm(images[1][0] - images[0][0]) < 3.0 * float(sigma.max()):
+            self.images.pop(o, None)
+            return images[0][0], images[0][1]
+        self.images[o] = images
+        return None
 
 
 def trilaterate(anchors: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -103,7 +123,8 @@ class JointCslCtl(CentralizedUKF):
         self.p = self.model.position_dim
         self.last_odometry: dict[int, tuple] = {}  # a -> (dt, |speed|, speed std, |turn rate|, its std)
         self.stats = {"ctl_ticks": 0, "majorizations": 0, "unconverged": 0, "unused_target_ranges": 0,
-                      "ctl_failed": 0, "missing_frames": 0, "ambiguous_first_fix": 0}
+                      "ctl_failed": 0, "missing_frames": 0, "undecided_first_fix": 0}
+        self.first_fix = FirstFix()
 
     @classmethod
     def from_scenario(cls, scenario, ids, settings=None):
@@ -160,10 +181,14 @@ class JointCslCtl(CentralizedUKF):
             if len({r[0] for r in mine}) < self.min_ranges:
                 continue
             try:
-                fixes[o] = first_fix(np.array([self.x[self.offset[a]:self.offset[a] + p] for a, *_ in mine]),
-                                     np.array([r[2] for r in mine]), np.array([r[3] for r in mine]))
+                fix = self.first_fix.update(o, np.array([self.x[self.offset[a]:self.offset[a] + p] for a, *_ in mine]),
+                                            np.array([r[2] for r in mine]), np.array([r[3] for r in mine]))
             except ValueError:
-                self.stats["ambiguous_first_fix"] += 1
+                fix = None
+            if fix is None:
+                self.stats["undecided_first_fix"] += 1
+            else:
+                fixes[o] = fix[0]
         new = list(fixes)
         used = [r for r in rows if r[1] in self.targets or r[1] in fixes]
         self.stats["unused_target_ranges"] += len(rows) - len(used)
@@ -384,7 +409,8 @@ class IlCtlNode(IndependentNode):
         self.first: int | None = None
         self.targets: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}  # o -> (mean, cov, tick)
         self.dt = 0.0  # the clock's tick length, from the odometry: a static target's process noise
-        self.stats = {"incomplete_runs": 0, "ls_failed": 0, "unused_target_ranges": 0}
+        self.stats = {"incomplete_runs": 0, "ls_failed": 0, "unused_target_ranges": 0, "undecided_first_fix": 0}
+        self.first_fix = FirstFix()
 
     @classmethod
     def spec(cls, scenario, aid, settings=None) -> NodeSpec:
@@ -452,20 +478,23 @@ class IlCtlNode(IndependentNode):
             mine = [(p, r) for p, r in rows if r.target == o]
             anchors = np.array([p for p, _ in mine])
             z, s = np.array([r.range for _, r in mine]), np.array([r.std for _, r in mine])
-            prior = None
-            if o in self.targets:
-                m, P, seen = self.targets[o]
-                prior = (m, P + np.eye(2) * self.q_target * (k - seen) * self.dt)
-            elif len(mine) < self.min_ranges:
+            if o not in self.targets and len(mine) < self.min_ranges:
                 self.stats["unused_target_ranges"] += len(mine)
                 continue
             try:
-                x, P = ctl.ls_target(anchors, z, s, prior[0], prior) if prior is not None else \
-                    ctl.ls_target(anchors, z, s, first_fix(anchors, z, s))
+                if o in self.targets:
+                    m, P, seen = self.targets[o]
+                    P = P + np.eye(2) * self.q_target * (k - seen) * self.dt
+                    fix = ctl.ls_target(anchors, z, s, m, (m, P))
+                else:
+                    fix = self.first_fix.update(o, anchors, z, s)
             except ValueError:
-                self.stats["ls_failed"] += 1  # an ambiguous first fix included
+                self.stats["ls_failed"] += 1
                 continue
-            self.targets[o] = (x, P, k)
+            if fix is None:
+                self.stats["undecided_first_fix"] += 1
+                continue
+            self.targets[o] = (fix[0], fix[1], k)
 
     def estimate(self) -> Estimate:
         return Estimate(self.k, self.x.copy(), self.P.copy(), (),
