@@ -19,7 +19,7 @@ PLANAR_MODELS = ("planar-speed-heading", "planar-pose")
 
 
 def streams(seed: int) -> dict[str, np.random.Generator]:
-    names = ("motion", "odometry", "range", "radio", "loss", "gnss", "target")
+    names = ("motion", "odometry", "range", "radio", "loss", "gnss", "target", "gnss_state")
     children = np.random.SeedSequence(seed).spawn(len(names))
     return {n: np.random.default_rng(c) for n, c in zip(names, children)}
 
@@ -57,6 +57,13 @@ class World:
         self.target_pos = {t.id: np.array(t.position, float) for t in scenario.world.targets}
         self.target_vel = {t.id: np.array(t.velocity, float) for t in scenario.world.targets}
         self._steps: int | None = None
+        # GNSS state of each planar receiver, a two-state Markov chain when it switches.
+        g = scenario.sensors.gnss
+        self.receivers = [a for a in self.planar_ids if g.agents is None or a in g.agents] if g.enabled else []
+        self.switching = g.to_fault + g.to_normal > 0
+        stationary = g.to_normal / (g.to_fault + g.to_normal) if self.switching else 1.0
+        draws = self.rng["gnss_state"].random(len(self.receivers)) if self.switching else np.zeros(len(self.receivers))
+        self.gnss_normal = {a: bool(u < stationary) for a, u in zip(self.receivers, draws)}
 
     @staticmethod
     def _initial_turn(motion) -> float:
@@ -171,13 +178,30 @@ class World:
         if not cfg.enabled:
             return {}
         noise = {a: self.rng["gnss"].normal(0.0, cfg.noise, size=2) for a in self.planar_ids}  # drawn even in outage
-        have = self.planar_ids if cfg.agents is None else [a for a in self.planar_ids if a in cfg.agents]
-        return {a: GnssMsg(self.pos[a] + noise[a], cfg.noise) for a in have if gnss_ok(a)}
+        if self.switching and self.k > 1:  # the chain moves between ticks; tick 1 keeps the initial states
+            u = self.rng["gnss_state"].random(len(self.receivers))
+            for a, x in zip(self.receivers, u):
+                self.gnss_normal[a] = x >= cfg.to_fault if self.gnss_normal[a] else x < cfg.to_normal
+        return {a: GnssMsg(self.pos[a] + noise[a], cfg.noise) for a in self.receivers
+                if self.gnss_normal[a] and gnss_ok(a)}
 
     def _ranges(self) -> dict[int, list[RangeMsg]]:
-        """Up to max_per_step measurements among distinct ordered pairs within sensing range."""
+        """Up to max_per_step measurements among distinct ordered pairs within sensing range,
+        or (all_pairs) one for every ordered pair within it, in (measurer, measured) order."""
         cfg = self.sc.sensors.range
         rng = self.rng["range"]
+        if cfg.all_pairs:
+            ids = self.planar_ids
+            at = np.array([self.pos[a] for a in ids]).reshape(len(ids), -1)
+            dist = np.linalg.norm(at[:, None, :] - at[None, :, :], axis=-1)
+            noise = rng.normal(0.0, cfg.noise, size=dist.shape)  # drawn for every pair, in range or not
+            out: dict[int, list[RangeMsg]] = {}
+            for i, m in enumerate(ids):
+                seen = [RangeMsg(n, max(float(dist[i, j] + noise[i, j]), 0.0), cfg.noise)
+                        for j, n in enumerate(ids) if j != i and dist[i, j] <= cfg.max_range]
+                if seen:
+                    out[m] = seen[:64]  # what a frame carries (docs/wire.md)
+            return out
         ids = self.planar_ids
         # Every ordered pair at once (row-major: the order of the nested loop the picks index);
         # a norm per pair was most of netsim's tick() at 64 agents.

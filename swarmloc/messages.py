@@ -346,6 +346,36 @@ class CentreEstimate:
     P: SqMat
 
 
+# dNBP (Wan et al. 2014): beliefs as weighted sample sets, float32 on the wire (docs/wire.md).
+NBP_MAX_SAMPLES = 1000  # M: samples in one belief
+NBP_MAX_DIM = 3  # d: a 2D or 3D position
+
+
+@message("nbp.belief", max_bytes=20 * 1024)  # M = 1000, d = 3: at most 16265 bytes
+class NbpBelief:
+    """dNBP, broadcast: the sender's belief over its position in time slice k after its
+    `it`-th send of the slice: M weighted samples (float32) and the kernel bandwidth of the
+    Gaussian mixture they define (Wan et al. 2014, Algorithms 1-2). `normal`: the sender has a
+    GNSS fix in this slice (receivers that are normal ignore beliefs of fault senders)."""
+
+    k: Tick
+    it: Annotated[int, Int(0, 255)]
+    normal: Annotated[bool, Bool()]
+    samples: Annotated[np.ndarray, Array(2, dtype="<f4", dims=((1, NBP_MAX_SAMPLES), (1, NBP_MAX_DIM)))]  # (M, d)
+    weights: Annotated[np.ndarray, Array(1, dtype="<f4", dims=((1, NBP_MAX_SAMPLES),))]  # (M,)
+    bandwidth: Annotated[np.ndarray, Array(2, square=True, dims=((1, NBP_MAX_DIM), (1, NBP_MAX_DIM)))]  # (d, d)
+
+
+@message("nbp.fix")
+class NbpFix:
+    """LS baseline, broadcast by a normal UAV each slice: its GNSS position fix and std, the
+    anchor a fault UAV multilaterates from."""
+
+    k: Tick
+    position: Vec
+    std: Annotated[float, Float(lo=0.0)]
+
+
 @message("radio.nack")
 class LinkNack:
     """The radio could not deliver our unicast frame `seq` to `dst` (a MAC's missing ACK).

@@ -283,7 +283,7 @@ class Outbox:
         """The frame, or None if it would exceed the frame limit: it is not sent and takes no
         seq, so a receiver still sees this node's frames numbered without gaps."""
         data = wire.encode(send.msg, self.node_id, self.seq + 1, send.dst)
-        if len(data) > wire.MAX_FRAME_BYTES:
+        if len(data) > wire.max_bytes(send.msg):
             return None
         self.seq += 1
         if send.dst is not None:

@@ -298,7 +298,11 @@ def _target_metrics(record: RunRecord, trace: Trace) -> dict:
 
 def metrics(record: RunRecord, algorithms: list[str]) -> dict:
     """Per estimator and agent: position error (mean over ticks 1.., final, max), NEES and
-    NIS averages with their two-sided 95% chi-square bounds."""
+    NIS averages with their two-sided 95% chi-square bounds; with GNSS in the swarm, the mean
+    error over the ticks and agents without a fix (`no_gnss_mean_error_m`)."""
+    # Which (tick, agent) frames carried a GNSS fix: a GNSS-denied agent's error is reported
+    # apart (the dNBP paper's "fault" UAVs), when the swarm has fixes at all.
+    fixed = np.array([[frames[a].gnss is not None for a in record.ids] for frames in record.sensors], bool)
     out: dict = {"ticks": len(record.k), "agents": record.ids,
                  "models": {str(a): record.models[a].name for a in record.ids}, "estimators": {}}
     for alg in algorithms:
@@ -334,6 +338,10 @@ def metrics(record: RunRecord, algorithms: list[str]) -> dict:
         }
         if tr.target_ids is not None:
             out["estimators"][alg]["targets"] = _target_metrics(record, tr)
+        if fixed.any():
+            lost = err[1:][~fixed[1:]]
+            lost = lost[~np.isnan(lost)]
+            out["estimators"][alg]["no_gnss_mean_error_m"] = float(lost.mean()) if lost.size else None
     return out
 
 

@@ -58,7 +58,15 @@ class InProcessRunner:
         for _ in range(self.env.steps + 1):
             k, t, frames = self.env.tick()
             self.t = t
-            sent = [tx for a in sorted(self.nodes) for tx in self._encode(a, self._step(a, frames[a], t))]
+            sent = []
+            for a in sorted(self.nodes):
+                node, tags = self.nodes[a], self.timers[a].pop_due(t)
+                actions = [x for tag in tags for x in node.on_timer(tag, t)]  # Timer: lockstep semantics
+                if tags:
+                    # A timer may have finished the last tick's estimate: the agent daemon
+                    # publishes it before it steps, and netsim records it for that tick.
+                    record.add_estimate(node.algorithm, a, estimate_of(node))
+                sent += self._encode(a, actions + node.step(frames[a]))
             rounds = 0
             while sent:
                 rounds += 1
@@ -73,11 +81,7 @@ class InProcessRunner:
                 on_tick(k, frames)
         return record
 
-    def _step(self, a: int, sensors: Sensors, t: float) -> list:
-        """Timers due by this tick first (Timer: lockstep semantics), then the sensor frame."""
-        node = self.nodes[a]
-        actions = [x for tag in self.timers[a].pop_due(t) for x in node.on_timer(tag, t)]
-        return actions + node.step(sensors)
+
 
     def _deliver(self, rx: RadioRx) -> list:
         node = self.nodes[rx.receiver]

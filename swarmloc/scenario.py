@@ -182,8 +182,8 @@ class RangeSensor(_Strict):
     probability: float = Field(0.5, ge=0, le=1, description="chance per step and per slot that a measurement happens")
     max_per_step: int = Field(1, ge=0, description="measurement slots per step in the whole swarm")
     max_range: float = Field(math.inf, gt=0, description="sensing range (m): pairs farther apart are never measured")
-    all_pairs: bool = Field(False, description="UAS: instead of random slots, every platform ranges every other "
-                            "platform within max_range once per `sensors.epoch`")
+    all_pairs: bool = Field(False, description="instead of random slots, every platform ranges every other platform "
+                            "within max_range (planar: every tick; UAS: once per `sensors.epoch`)")
 
 
 class TargetRangeSensor(_Strict):
@@ -204,6 +204,11 @@ class GnssSensor(_Strict):
     pseudorange_noise: float = Field(1.0, gt=0, description="UAS: std of a pseudorange (m)")
     mask_deg: float = Field(10.0, ge=0, lt=90, description="UAS: elevation mask of the constellation (deg)")
     agents: list[int] | None = Field(None, description="agents with a receiver; null: all")
+    to_fault: float = Field(0.0, ge=0, le=1, description="planar: chance per tick that a receiver that has a fix "
+                            "loses it (a Markov chain of normal and fault states; 0 with to_normal 0: no switching)")
+    to_normal: float = Field(0.0, ge=0, le=1, description="planar: chance per tick that a receiver without a fix gets "
+                             "it back. With switching, each receiver starts normal with the chain's stationary "
+                             "probability to_normal / (to_fault + to_normal)")
 
 
 class ImuSensor(_Strict):
@@ -396,8 +401,9 @@ class Scenario(_Strict):
         if self.references is not None:
             return [r for r in self.references if r != mine]
         models = {a.model for a in self.world.agents if a.localized}
+        has = {"targets": bool(self.world.targets), "gnss": self.sensors.gnss.enabled}
         return [r for r in REGISTRY.references() if models <= set(REGISTRY[r].models) and r != mine
-                and (self.world.targets or not REGISTRY[r].targets)]
+                and all(has[need] for need in REGISTRY[r].requires)]
 
     def agent(self, aid: int) -> AgentSpec:
         return next(a for a in self.world.agents if a.id == aid)

@@ -25,14 +25,21 @@ import msgpack
 import numpy as np
 
 SCHEMA_VERSION = 3  # 2: UAS sensor fields, clock speed, estimate NIS, fusion-centre payloads; 3: targets, turn rate, CSL-CTL payloads
-MAX_FRAME_BYTES = 64 * 1024
-MAX_ARRAY_ELEMENTS = 4096
+MAX_FRAME_BYTES = 64 * 1024  # a message type's frame limit unless it declares its own (@message max_bytes)
+# The hard ceiling: the largest frame limit any type may declare. Checked on the raw payload
+# before parsing (and by `bounded`), because a frame's type is known only once it is parsed.
+MAX_WIRE_BYTES = 64 * 1024
+MAX_ARRAY_ELEMENTS = 4096  # an array's default limit on each dimension and on its element count
 MAX_COLLECTION = 1024
 MAX_ID = 2**31 - 1  # agent ids fit a signed 32-bit integer
 
 
 class WireError(ValueError):
     """A frame that does not decode to a valid message; the reason names the field."""
+
+
+class FrameTooLarge(WireError):
+    """A frame above the hard ceiling (MAX_WIRE_BYTES) or above its type's own frame limit."""
 
 
 # --------------------------------------------------------------------------- field specs
@@ -99,34 +106,53 @@ class Str(Spec):
 
 
 class Array(Spec):
-    """float64 array as {dtype, shape, data}; `ndim` fixed, each dim at most MAX_ARRAY_ELEMENTS."""
+    """Float array as {dtype, shape, data}: `ndim` fixed; `dtype` "<f8" (float64, the default) or
+    "<f4" (float32), the only one accepted for the field; each dimension within its `dims` range
+    (default 0..MAX_ARRAY_ELEMENTS each) and at most `max_elements` elements (default
+    MAX_ARRAY_ELEMENTS); every value finite.
 
-    def __init__(self, ndim: int, square: bool = False):
-        self.ndim, self.square = ndim, square
+    Encoding converts to the field's dtype: a float64 value in a "<f4" field is rounded to the
+    nearest float32 (IEEE round to nearest, ties to even; numpy's astype), and one beyond the
+    float32 range becomes +-inf, which the receiver refuses as non-finite (as for NaN in a "<f8"
+    field, the encoder does not check). Decoding gives a writable numpy copy of the field's
+    dtype (float32 stays float32)."""
+
+    DTYPES = {"<f8": 8, "<f4": 4}
+
+    def __init__(self, ndim: int, square: bool = False, dtype: str = "<f8",
+                 dims: tuple[tuple[int, int], ...] | None = None, max_elements: int = MAX_ARRAY_ELEMENTS):
+        if dtype not in self.DTYPES:
+            raise TypeError(f"array dtype {dtype!r} not supported (only {sorted(self.DTYPES)})")
+        dims = tuple((0, MAX_ARRAY_ELEMENTS) for _ in range(ndim)) if dims is None else tuple(map(tuple, dims))
+        if len(dims) != ndim or not all(0 <= lo <= hi for lo, hi in dims):
+            raise TypeError(f"array dims {dims!r} must give ndim = {ndim} ranges lo <= hi")
+        self.ndim, self.square, self.dtype, self.dims, self.max_elements = ndim, square, dtype, dims, max_elements
 
     def encode(self, v):
-        a = np.ascontiguousarray(v, dtype="<f8")
-        return {"dtype": "<f8", "shape": list(a.shape), "data": a.tobytes()}
+        with np.errstate(over="ignore"):  # float64 beyond the float32 range: +-inf, documented above
+            a = np.ascontiguousarray(v, dtype=self.dtype)
+        return {"dtype": self.dtype, "shape": list(a.shape), "data": a.tobytes()}
 
     def decode(self, v, path):
         if not isinstance(v, dict) or set(v) != {"dtype", "shape", "data"}:
             raise WireError(f"{path}: expected array map with dtype, shape, data")
-        if v["dtype"] != "<f8":
-            raise WireError(f"{path}: dtype {v['dtype']!r} not allowed (only '<f8')")
+        if v["dtype"] != self.dtype:
+            raise WireError(f"{path}: dtype {v['dtype']!r} not allowed (only {self.dtype!r})")
         shape = v["shape"]
         if not isinstance(shape, list) or len(shape) != self.ndim or not all(
-            isinstance(s, int) and not isinstance(s, bool) and 0 <= s <= MAX_ARRAY_ELEMENTS for s in shape
+            isinstance(s, int) and not isinstance(s, bool) and lo <= s <= hi for s, (lo, hi) in zip(shape, self.dims)
         ):
-            raise WireError(f"{path}: bad shape {shape!r} (want {self.ndim} dims of 0..{MAX_ARRAY_ELEMENTS})")
+            want = ", ".join(f"{lo}..{hi}" for lo, hi in self.dims)
+            raise WireError(f"{path}: bad shape {shape!r} (want {self.ndim} dims of {want})")
         if self.square and len(set(shape)) != 1:
             raise WireError(f"{path}: shape {shape} not square")
         count = math.prod(shape)
-        if count > MAX_ARRAY_ELEMENTS:
-            raise WireError(f"{path}: {count} elements exceed {MAX_ARRAY_ELEMENTS}")
+        if count > self.max_elements:
+            raise WireError(f"{path}: {count} elements exceed {self.max_elements}")
         data = v["data"]
-        if not isinstance(data, bytes) or len(data) != 8 * count:
+        if not isinstance(data, bytes) or len(data) != self.DTYPES[self.dtype] * count:
             raise WireError(f"{path}: data length does not match shape {shape}")
-        a = np.frombuffer(data, dtype="<f8").reshape(shape).copy()
+        a = np.frombuffer(data, dtype=self.dtype).reshape(shape).copy()
         if not np.isfinite(a).all():
             raise WireError(f"{path}: non-finite values")
         return a
@@ -214,8 +240,12 @@ class Plain(Spec):
 REGISTRY: dict[str, type] = {}
 
 
-def message(name: str):
-    """Register a dataclass as wire message type `name`; its Annotated specs define the body."""
+def message(name: str, max_bytes: int = MAX_FRAME_BYTES):
+    """Register a dataclass as wire message type `name`; its Annotated specs define the body.
+    `max_bytes`: the type's frame limit (whole encoded frame, envelope included), at most the
+    hard ceiling MAX_WIRE_BYTES."""
+    if not 0 < max_bytes <= MAX_WIRE_BYTES:
+        raise TypeError(f"message type {name!r}: max_bytes {max_bytes} not in 1..{MAX_WIRE_BYTES}")
 
     def wrap(cls):
         cls = dataclass(frozen=True)(cls)
@@ -228,6 +258,7 @@ def message(name: str):
                 raise TypeError(f"{cls.__name__}.{f.name} has no wire Spec")
             specs[f.name] = spec
         cls.TYPE = name
+        cls.MAX_BYTES = max_bytes
         cls._specs = specs
         if name in REGISTRY:
             raise TypeError(f"message type {name!r} registered twice")
@@ -235,6 +266,13 @@ def message(name: str):
         return cls
 
     return wrap
+
+
+def max_bytes(msg) -> int:
+    """The frame limit of a message's type (a message, its class, or a type name)."""
+    if isinstance(msg, str):
+        return REGISTRY[msg].MAX_BYTES
+    return msg.MAX_BYTES
 
 
 def encode_body(msg) -> dict:
@@ -282,11 +320,11 @@ def decode(data: bytes, expect: tuple[type, ...] | None = None, body: bool = Tru
     router (netsim) that needs src, dst and seq but leaves the content to the receiver."""
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise WireError("payload is not bytes")
-    if len(data) > MAX_FRAME_BYTES:
-        raise WireError(f"frame of {len(data)} bytes exceeds {MAX_FRAME_BYTES}")
+    if len(data) > MAX_WIRE_BYTES:
+        raise FrameTooLarge(f"frame of {len(data)} bytes exceeds {MAX_WIRE_BYTES}")
     try:
         env = msgpack.unpackb(data if type(data) is bytes else bytes(data), raw=False, strict_map_key=False,
-                              max_bin_len=MAX_FRAME_BYTES)
+                              max_bin_len=MAX_WIRE_BYTES)
     except Exception as exc:  # msgpack raises several unrelated exception types
         raise WireError(f"not MessagePack: {exc.__class__.__name__}") from None
     if not isinstance(env, dict) or not Envelope.KEYS.issuperset(env) or "body" not in env:
@@ -296,6 +334,8 @@ def decode(data: bytes, expect: tuple[type, ...] | None = None, body: bool = Tru
     cls = REGISTRY.get(env.get("type")) if isinstance(env.get("type"), str) else None
     if cls is None:
         raise WireError(f"unknown message type {env.get('type')!r}")
+    if len(data) > cls.MAX_BYTES:
+        raise FrameTooLarge(f"frame of {len(data)} bytes exceeds {cls.MAX_BYTES} ({cls.TYPE})")
     if expect is not None and cls not in expect:
         raise WireError(f"message type {cls.TYPE!r} not expected here")
     src = _SRC.decode(env.get("src"), "src")
@@ -355,9 +395,9 @@ class Keys:
 
 
 # Zenoh refuses to reassemble a message larger than this for a client or peer session, so a
-# hostile publisher cannot make an agent buffer megabytes; frames between MAX_FRAME_BYTES and
+# hostile publisher cannot make an agent buffer megabytes; frames between MAX_WIRE_BYTES and
 # this still reach the subscriber callbacks, which count them as oversize without copying them.
-ZENOH_MAX_MESSAGE_BYTES = 4 * MAX_FRAME_BYTES
+ZENOH_MAX_MESSAGE_BYTES = 4 * MAX_WIRE_BYTES
 
 
 def zenoh_config(mode: str, listen: list[str] = (), connect: list[str] = ()) -> str:
@@ -376,9 +416,10 @@ def zenoh_config(mode: str, listen: list[str] = (), connect: list[str] = ()) -> 
 
 
 def bounded(payload) -> bytes | None:
-    """A subscriber's payload (Zenoh ZBytes) as bytes, or None when it exceeds the frame limit:
-    an oversized frame is never copied out of Zenoh's buffer, let alone queued."""
-    return payload.to_bytes() if len(payload) <= MAX_FRAME_BYTES else None
+    """A subscriber's payload (Zenoh ZBytes) as bytes, or None when it exceeds the hard ceiling
+    MAX_WIRE_BYTES: an oversized frame is never copied out of Zenoh's buffer, let alone queued.
+    (A frame within the ceiling but above its own type's limit is refused by `decode`.)"""
+    return payload.to_bytes() if len(payload) <= MAX_WIRE_BYTES else None
 
 
 def publisher_options(zenoh) -> dict:

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from swarmloc import wire
-from swarmloc.messages import Beacon, DclCommit, DclLog, DclToken, Done, EstimateMsg, OdometryMsg, RangeMsg, Sensors
+from swarmloc.messages import (Beacon, DclCommit, DclLog, DclToken, Done, EstimateMsg, NbpBelief, NbpFix, OdometryMsg, RangeMsg,
+                                Sensors)
 
 
 def token(**over):
@@ -119,3 +120,124 @@ def test_beacon_registered_once():
     assert wire.REGISTRY["beacon"] is Beacon
     with pytest.raises(TypeError, match="registered twice"):
         wire.message("beacon")(type("Dup", (), {"__annotations__": {}}))
+
+
+# --------------------------------------------------------------------------- float32 arrays, per-type limits, dNBP
+
+
+def belief(M=3, d=2, rng=None, **over):
+    rng = np.random.default_rng(1) if rng is None else rng
+    fields = dict(k=7, it=2, normal=True, samples=rng.normal(size=(M, d)).astype(np.float32),
+                  weights=np.full(M, 1.0 / M, np.float32), bandwidth=np.eye(d) * 0.25)
+    fields.update(over)
+    return NbpBelief(**fields)
+
+
+def _belief_body(**over):
+    body = wire.encode_body(belief())
+    body.update(over)
+    return body
+
+
+def test_f4_round_trip_bit_for_bit():
+    rng = np.random.default_rng(2)
+    samples = (rng.normal(size=(50, 3)) * 1e3).astype(np.float32)
+    samples[0, 0] = np.float32(1e-45)  # a subnormal is finite
+    msg = belief(samples=samples, weights=rng.random(50).astype(np.float32), bandwidth=np.eye(3))
+    body = wire.decode(wire.encode(msg, 4, 1)).body
+    assert body.samples.dtype == np.float32 and body.weights.dtype == np.float32 and body.bandwidth.dtype == np.float64
+    assert body.samples.tobytes() == samples.tobytes() and body.weights.tobytes() == msg.weights.tobytes()
+    assert body.samples.flags.writeable  # a copy, as for "<f8"
+    raw = msgpack.unpackb(wire.encode(msg, 4, 1))["body"]["samples"]
+    assert raw["dtype"] == "<f4" and raw["shape"] == [50, 3] and len(raw["data"]) == 4 * 150
+
+
+def test_f8_values_in_an_f4_field_are_rounded_to_nearest_float32():
+    x = np.array([[0.1, 1 / 3], [2.0**-30, -7.123456789]])
+    body = wire.decode(wire.encode(belief(M=2, samples=x, weights=np.array([0.5, 0.5])), 1, 1)).body
+    assert body.samples.tobytes() == x.astype(np.float32).tobytes()
+
+
+@pytest.mark.parametrize("field, arr", [
+    ("samples", wire.Array(2).encode(np.zeros((3, 2)))),  # "<f8" where "<f4" is declared
+    ("weights", wire.Array(1).encode(np.ones(3))),
+    ("bandwidth", wire.Array(2, dtype="<f4").encode(np.eye(2))),  # "<f4" where "<f8" is declared
+])
+def test_dtype_mismatch_refused(field, arr):
+    with pytest.raises(wire.WireError, match=f"body.{field}: dtype '<f[48]' not allowed"):
+        wire.decode(_envelope(_belief_body(**{field: arr}), "nbp.belief"))
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_non_finite_f4_refused(bad):
+    w = np.full(3, 1 / 3, np.float32)
+    w[1] = bad
+    with pytest.raises(wire.WireError, match="body.weights: non-finite"):
+        wire.decode(wire.encode(belief(weights=w), 1, 1))
+    with pytest.raises(wire.WireError, match="body.samples: non-finite"):  # float64 overflow becomes inf in float32
+        wire.decode(wire.encode(belief(samples=np.array([[1e39, 0.0], [0, 0], [0, 0]])), 1, 1))
+
+
+def test_f4_data_length_is_four_bytes_per_value():
+    arr = {"dtype": "<f4", "shape": [3], "data": b"\0" * 24}  # 3 float64s' worth
+    with pytest.raises(wire.WireError, match="body.weights: data length"):
+        wire.decode(_envelope(_belief_body(weights=arr), "nbp.belief"))
+
+
+def test_belief_of_1000_3d_samples_fits_its_limit_and_decodes():
+    msg = belief(M=1000, d=3, k=2**40, it=255, weights=np.random.default_rng(3).random(1000))
+    data = wire.encode(msg, wire.MAX_ID, 2**63 - 1, wire.MAX_ID)  # largest header values
+    assert wire.max_bytes(msg) == wire.max_bytes(NbpBelief) == wire.max_bytes("nbp.belief") == 20480
+    assert len(data) == 16265 <= wire.max_bytes(msg)
+    body = wire.decode(data).body
+    assert body.samples.shape == (1000, 3) and np.array_equal(body.samples, msg.samples)
+    assert body.weights.tobytes() == msg.weights.astype(np.float32).tobytes()
+
+
+def test_belief_shape_limits():
+    for field, shape in [("samples", (1001, 3)), ("weights", (1001,)), ("samples", (3, 4)), ("samples", (0, 2)),
+                         ("bandwidth", (4, 4)), ("bandwidth", (0, 0))]:
+        arr = wire.Array(len(shape), dtype="<f8" if field == "bandwidth" else "<f4").encode(np.zeros(shape))
+        with pytest.raises(wire.WireError, match=f"body.{field}: bad shape"):
+            wire.decode(_envelope(_belief_body(**{field: arr}), "nbp.belief"))
+    data = wire.encode(belief(M=1001, d=3), 1, 1)  # the encoder does not check; 20 KiB would fit it
+    assert len(data) < wire.max_bytes(NbpBelief)
+    with pytest.raises(wire.WireError, match=r"body.samples: bad shape \[1001, 3\] \(want 2 dims of 1..1000, 1..3\)"):
+        wire.decode(data)
+
+
+def test_type_frame_limit_checked_after_type_before_body():
+    limit = wire.max_bytes(NbpBelief)
+    pad = {"dtype": "<f4", "shape": [1], "data": b"\0" * 4}
+    body = _belief_body(weights=pad, samples={"dtype": "<f4", "shape": [1, 1], "data": b"\0" * (limit + 1)})
+    data = _envelope(body, "nbp.belief")
+    assert limit < len(data) <= wire.MAX_WIRE_BYTES
+    with pytest.raises(wire.FrameTooLarge, match=f"frame of {len(data)} bytes exceeds {limit} \\(nbp.belief\\)"):
+        wire.decode(data)
+    with pytest.raises(wire.FrameTooLarge):  # also for a router that leaves the body alone
+        wire.decode(data, body=False)
+
+
+def test_other_types_keep_the_64_kib_limit():
+    assert wire.MAX_WIRE_BYTES == wire.MAX_FRAME_BYTES == 65536 and wire.ZENOH_MAX_MESSAGE_BYTES == 4 * 65536
+    assert all(cls.MAX_BYTES == 65536 for name, cls in wire.REGISTRY.items() if name != "nbp.belief")
+    assert max(cls.MAX_BYTES for cls in wire.REGISTRY.values()) <= wire.MAX_WIRE_BYTES
+    # a beacon of 60000 bytes (the array limit passed for once) is still a valid frame ...
+    big = wire.Array(1, max_elements=10**6, dims=((0, 10**6),)).encode(np.zeros(7480))
+    ok = _envelope({"cov": _COV, "k": 1, "version": {}, "position": big})
+    assert 59000 < len(ok) <= 65536
+    with pytest.raises(wire.WireError, match="body.position: bad shape"):  # ... refused only by its array limit
+        wire.decode(ok)
+    big = wire.Array(1, max_elements=10**6, dims=((0, 10**6),)).encode(np.zeros(8200))
+    over = _envelope({"cov": _COV, "k": 1, "version": {}, "position": big})
+    with pytest.raises(wire.FrameTooLarge, match=f"frame of {len(over)} bytes exceeds 65536$"):
+        wire.decode(over)
+    with pytest.raises(TypeError, match="max_bytes"):
+        wire.message("too.big", max_bytes=wire.MAX_WIRE_BYTES + 1)
+
+
+def test_nbp_fix_round_trips():
+    msg = NbpFix(5, np.array([1.5, -2.0, 30.25]), 0.02)
+    env = wire.decode(wire.encode(msg, 2, 9))
+    assert env.type == "nbp.fix" and env.body.k == 5 and env.body.std == 0.02
+    assert np.array_equal(env.body.position, msg.position) and wire.max_bytes(msg) == 65536

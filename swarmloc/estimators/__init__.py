@@ -45,7 +45,9 @@ class EstimatorInfo:
     batch: str | None = None
     settings_path: str | None = None
     paper: str = ""
-    targets: bool = False  # localizes the scenario's targets: a default reference only where there are some
+    # What a scenario must have for this estimator to be a default reference there: "targets"
+    # (it localizes targets), "gnss" (it needs GNSS fixes).
+    requires: tuple[str, ...] = ()
 
     @property
     def runs_on_agents(self) -> bool:
@@ -158,13 +160,21 @@ for _info in (
                   "tick; every agent runs it on the frames all agents broadcast", PLANAR + POSE, "tab:green",
                   node="swarmloc.estimators.csl_ctl:CslCtlNode.spec", reference=True,
                   batch="swarmloc.estimators.csl_ctl:JointCslCtl.from_scenario",
-                  settings_path="swarmloc.estimators.settings:CtlSettings", paper="Wang et al. 2022", targets=True),
+                  settings_path="swarmloc.estimators.settings:CtlSettings", paper="Wang et al. 2022", requires=("targets",)),
     EstimatorInfo("il-ctl", "IL-CTL", "dead reckoning alone, then targets by least squares from the positions "
                   "agents broadcast, taken as exact", PLANAR + POSE, "tab:red",
                   node="swarmloc.estimators.csl_ctl:IlCtlNode.spec", reference=True,
                   batch="swarmloc.estimators.csl_ctl:il_ctl_reference",
                   settings_path="swarmloc.estimators.settings:CtlSettings", paper="Wang et al. 2022 (baseline)",
-                  targets=True),
+                  requires=("targets",)),
+    EstimatorInfo("dnbp", "dNBP", "nonparametric belief propagation: beliefs as weighted samples, agents without "
+                  "GNSS fuse rings around their neighbours' beliefs under the paper's message schedule", PLANAR,
+                  "tab:purple", node="swarmloc.estimators.dnbp:DnbpNode.spec",
+                  settings_path="swarmloc.estimators.settings:DnbpSettings", paper="Wan et al. 2014"),
+    EstimatorInfo("ls", "LS", "GNSS when there is a fix; without, multilateration from the agents with a fix it "
+                  "ranged (at least 3), else dead reckoning", PLANAR, "tab:brown", reference=True,
+                  batch="swarmloc.estimators.dnbp:LeastSquaresReference.from_scenario",
+                  paper="Wan et al. 2014 (baseline)", requires=("gnss",)),
     EstimatorInfo("ekf", "EKF alone", "each UAS's own INS/GNSS EKF, nothing shared", UAS, "tab:gray",
                   node="swarmloc.estimators.ekf:EkfNode.spec", reference=True,
                   paper="Goel et al. 2016 (no sharing)"),

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 
 class NoSettings(BaseModel):
@@ -74,3 +74,24 @@ class CtlSettings(BaseModel):
                         "tick runs when the shares are in, or at the next tick)")
     forget_after: int = Field(10, ge=1, description="ticks without a share after which an agent stops waiting for "
                               "another")
+
+
+class DnbpSettings(BaseModel):
+    """dNBP settings (docs/dnbp.md)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    M: int = Field(300, ge=10, le=1000, description="samples per belief and per message")
+    iterations: int = Field(3, ge=1, le=255, description="most beliefs a fault agent sends in one time slice (each "
+                            "new message after its first send refines and re-sends it)")
+    quiet: float = Field(0.1, gt=0, description="seconds without a new message after which a fault agent below its "
+                         "threshold lowers it (3 -> 2 -> 1); in lockstep this takes effect at the slice's end")
+    thresholds: list[int] = Field([3, 2, 1], min_length=1, description="messages a fault agent needs before it sends, "
+                                  "strictly decreasing, each >= 1 (the paper: 3, then 2, then 1)")
+
+    @field_validator("thresholds")
+    @classmethod
+    def _decreasing(cls, v):
+        if any(x < 1 for x in v) or any(a <= b for a, b in zip(v, v[1:])):
+            raise ValueError("strictly decreasing integers >= 1")
+        return v
