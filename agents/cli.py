@@ -226,6 +226,44 @@ def demo(out: Optional[Path] = OutOpt, seed: Optional[int] = SeedOpt, swarm: str
     _run("wang2019", out, seed, swarm, port, plots, force, restart_crashed)
 
 
+@app.command()
+def study(
+    spec: Path = typer.Argument(..., help="study spec (YAML, docs/study.md)"),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="study directory; rerun with the same one to resume "
+                                       "(default: studies/<name>)"),
+    runs: Optional[int] = typer.Option(None, "--runs", callback=_in_range(1), help="runs per point, instead of the spec's"),
+    workers: Optional[int] = typer.Option(None, "--workers", callback=_in_range(1),
+                                          help="local worker processes, instead of the spec's (default: CPU count)"),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="run on this Dask distributed scheduler, e.g. "
+                                            "tcp://10.0.0.5:8786, instead of the local process pool"),
+    plots: bool = typer.Option(True, "--plots/--no-plots", help="write plots/*.png into the study directory"),
+    force: bool = typer.Option(False, "--force", help="discard the runs of a different study in --out"),
+):
+    """Monte Carlo study: sweep scenario parameters, many seeded in-process runs per point, in
+    parallel; resumable after Ctrl-C; writes results.csv, summary.csv and plots."""
+    from rich.console import Console
+
+    from swarmloc import study as st
+
+    try:
+        s = st.load_spec(spec)
+        out = out or Path("studies") / s.name
+        result = st.run_study(s, out, runs=runs, workers=workers, scheduler=scheduler, plots=plots, force=force,
+                              console=Console(stderr=True))
+    except st.StudyError as exc:
+        raise Failure(str(exc), 2) from None
+    except st.RunFailed as exc:
+        raise Failure(f"{exc}; the finished runs are kept in {out}/runs.jsonl", 1) from None
+    except KeyboardInterrupt:
+        again = " ".join(["swarmloc study", str(spec), "--out", str(out), *(["--runs", str(runs)] if runs else []),
+                          *(["--scheduler", scheduler] if scheduler else [])])
+        typer.echo(f"interrupted: the finished runs are kept in {out}/runs.jsonl; resume with: {again}", err=True)
+        raise typer.Exit(130)
+    _console().print(st.summary_table(result, s.metrics, [p.param for p in s.sweep]))
+    typer.echo(f"{result.executed} runs computed, {result.done - result.executed} taken from {out}/runs.jsonl; "
+               f"wrote {', '.join(str(f.relative_to(out)) for f in result.files)} in {out}")
+
+
 # ------------------------------------------------------------------------------------ agent
 
 

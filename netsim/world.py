@@ -64,6 +64,9 @@ class World:
         stationary = g.to_normal / (g.to_fault + g.to_normal) if self.switching else 1.0
         draws = self.rng["gnss_state"].random(len(self.receivers)) if self.switching else np.zeros(len(self.receivers))
         self.gnss_normal = {a: bool(u < stationary) for a, u in zip(self.receivers, draws)}
+        if not self.switching and g.normal_share is not None:
+            keep = set(self.rng["gnss_state"].permutation(self.receivers)[:round(g.normal_share * len(self.receivers))])
+            self.gnss_normal = {a: a in keep for a in self.receivers}
 
     @staticmethod
     def _initial_turn(motion) -> float:

@@ -209,6 +209,9 @@ class GnssSensor(_Strict):
     to_normal: float = Field(0.0, ge=0, le=1, description="planar: chance per tick that a receiver without a fix gets "
                              "it back. With switching, each receiver starts normal with the chain's stationary "
                              "probability to_normal / (to_fault + to_normal)")
+    normal_share: float | None = Field(None, ge=0, le=1, description="planar, without switching: the share of the "
+                                       "receivers that have a fix (a seeded random subset of round(share * n) of them, "
+                                       "fixed for the run); null: all")
 
 
 class ImuSensor(_Strict):

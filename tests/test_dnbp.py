@@ -120,6 +120,14 @@ def test_gnss_switches_as_a_markov_chain_with_its_stationary_share():
         k, _, frames = sim.tick()
         if k:
             assert sorted(a for a, f in frames.items() if f.gnss is not None) == [1, 2, 3]
+    share = S.load("wan2014").with_overrides(**{"sensors.gnss.to_fault": 0.0, "sensors.gnss.to_normal": 0.0,
+                                                "sensors.gnss.normal_share": 0.25, "clock.duration": 5.0})
+    sim, normal = Simulation(share), []
+    for _ in range(sim.steps + 1):
+        k, _, frames = sim.tick()
+        if k:
+            normal.append(sorted(a for a, f in frames.items() if f.gnss is not None))
+    assert len(normal[0]) == 5 and all(n == normal[0] for n in normal)  # a quarter of 20, fixed
 
 
 def test_every_uav_ranges_every_other_within_r():
