@@ -319,15 +319,12 @@ class CslCtlNode(Node):
         self.k = self.pending = k
         self.nis = []
         self.frames.setdefault(k, {})[self.id] = sensors
-        out.append(Send(self.share(k, sensors), None))
+        out.append(Send(CslShare(k, sensors), None))
         if not self._ready(k):
             out.append(Timer(self.wait, RUN))
         else:
             self._run()
         return out
-
-    def share(self, k: int, sensors: Sensors):
-        return CslShare(k, sensors)
 
     def on_timer(self, tag: str, t: float) -> list:
         if tag == RUN and self.pending is not None:
