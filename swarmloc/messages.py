@@ -366,16 +366,6 @@ class NbpBelief:
     bandwidth: Annotated[np.ndarray, Array(2, square=True, dims=((1, NBP_MAX_DIM), (1, NBP_MAX_DIM)))]  # (d, d)
 
 
-@message("nbp.fix")
-class NbpFix:
-    """LS baseline, broadcast by a normal UAV each slice: its GNSS position fix and std, the
-    anchor a fault UAV multilaterates from."""
-
-    k: Tick
-    position: Vec
-    std: Annotated[float, Float(lo=0.0)]
-
-
 @message("radio.nack")
 class LinkNack:
     """The radio could not deliver our unicast frame `seq` to `dst` (a MAC's missing ACK).

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from swarmloc import wire
-from swarmloc.messages import (Beacon, DclCommit, DclLog, DclToken, Done, EstimateMsg, NbpBelief, NbpFix, OdometryMsg, RangeMsg,
+from swarmloc.messages import (Beacon, DclCommit, DclLog, DclToken, Done, EstimateMsg, NbpBelief, OdometryMsg, RangeMsg,
                                 Sensors)
 
 
@@ -234,10 +234,3 @@ def test_other_types_keep_the_64_kib_limit():
         wire.decode(over)
     with pytest.raises(TypeError, match="max_bytes"):
         wire.message("too.big", max_bytes=wire.MAX_WIRE_BYTES + 1)
-
-
-def test_nbp_fix_round_trips():
-    msg = NbpFix(5, np.array([1.5, -2.0, 30.25]), 0.02)
-    env = wire.decode(wire.encode(msg, 2, 9))
-    assert env.type == "nbp.fix" and env.body.k == 5 and env.body.std == 0.02
-    assert np.array_equal(env.body.position, msg.position) and wire.max_bytes(msg) == 65536
