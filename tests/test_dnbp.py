@@ -54,16 +54,18 @@ def fig3_nodes(M=300, seed=0, iterations=1):
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_the_schedule_of_fig_3_4_with_real_nodes(seed):
     """UAV4 sends first (3 normal neighbours), then UAV5 (2 normal + UAV4), then UAV6 (UAV3,
-    UAV4, UAV5); with refinements (3 sends each) every one localizes to a few metres (GPS and
-    range noise 1 m, kernels about 3 m) from a 300 m wide prior."""
+    UAV4, UAV5); with refinements (3 sends each) UAV4, with 3 exact anchors, localizes to a few
+    metres (GPS and range noise 1 m) from a 300 m wide prior, and UAV5 and UAV6, each resting on
+    a fault UAV's belief, to within three standard deviations of their own beliefs."""
     assert walk(fig3_nodes(seed=seed), fig3_frames(np.random.default_rng(seed))) == [[4], [5], [6]]
     nodes = fig3_nodes(seed=seed, iterations=3)
     rounds = walk(nodes, fig3_frames(np.random.default_rng(seed)))
     first = {a: next(i for i, r in enumerate(rounds) if a in r) for a in (4, 5, 6)}
     assert first == {4: 0, 5: 1, 6: 2}
     for a in (4, 5, 6):
-        err = np.linalg.norm(nodes[a].estimate().mean - POS[a])
-        assert err < (5.0 if a == 4 else 8.0), (a, err)
+        e = nodes[a].estimate()
+        err, std = np.linalg.norm(e.mean - POS[a]), np.sqrt(np.trace(e.cov) / 2)
+        assert err < (5.0 if a == 4 else min(3 * std, 15.0)), (a, err, std)
     # A normal agent takes no beliefs of fault agents, and counts them.
     assert nodes[1].drops["ignored"] >= 2 and nodes[1].estimate().mean == pytest.approx(POS[1], abs=5.0)
 

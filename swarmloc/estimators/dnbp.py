@@ -11,7 +11,7 @@ density estimate, swarmloc.nbp). One time slice per tick:
    nor needs any: the normal agents are the anchors.
 3. **A fault agent** (no fix) turns each belief it hears from an agent it ranged this tick
    into that agent's message to it, a ring of the measured radius around the sender's samples
-   (Algorithm 1), and once it holds `thresholds[0]` (3) of them, from normal agents or from
+   (Algorithm 1) whose kernel is `ring_scale` times the ring's thickness, and once it holds `thresholds[0]` (3) of them, from normal agents or from
    fault agents that have sent, it forms its belief, the product of its prediction and the
    messages (mixture importance sampling, Algorithm 2), and broadcasts it. Later messages
    refine and re-send it, up to `iterations` sends per slice. When it stays below the threshold
@@ -52,11 +52,10 @@ from swarmloc.node import Estimate, Node, NodeSpec, Send, Timer, odometry_of
 NBP_STREAM = 0xD1BB  # keeps a node's draws apart from the scenario's other streams
 
 
-def ring_bandwidth(sender: np.ndarray, z: float, sigma: float, M: int) -> float:
-    """Kernel std of a ring message's samples: the ring's own thickness (the range noise and the
-    sender's kernel) plus the spacing of M samples around it. A rule of thumb over the ring's
-    samples (Silverman) takes the ring's whole extent for spread and blurs a 300 m ring over
-    tens of metres, which is what a product of rings then cannot recover from."""
+def ring_thickness(sender: np.ndarray, z: float, sigma: float, M: int) -> float:
+    """A ring message's own thickness (std, m): the range noise and the sender's kernel, plus
+    the spacing of M samples around it. The ring's kernel is `ring_scale` times this
+    (docs/dnbp.md, "The ring's kernel")."""
     d = sender.shape[0]
     spacing = 2.0 * np.pi * max(z, 0.0) / M
     return float(np.sqrt(sigma**2 + np.trace(sender) / d + spacing**2 / 4.0))
@@ -66,9 +65,11 @@ class DnbpNode(Node):
     algorithm = "dnbp"
 
     def __init__(self, aid: int, x0, P0, model="planar-speed-heading", *, M: int = 300, iterations: int = 3,
-                 quiet: float = 0.1, thresholds=THRESHOLDS, seed: int = 0, rule: str = "silverman"):
+                 quiet: float = 0.1, thresholds=THRESHOLDS, ring_scale: float = 4.0, seed: int = 0,
+                 rule: str = "silverman"):
         super().__init__(aid, x0, P0, model)
         self.M, self.iterations, self.quiet = int(M), int(iterations), float(quiet)
+        self.ring_scale = float(ring_scale)
         self.thresholds, self.rule = tuple(int(t) for t in thresholds), rule
         self.rng = np.random.default_rng([int(seed), NBP_STREAM, self.id])
         self.p = self.model.position_dim
@@ -92,7 +93,8 @@ class DnbpNode(Node):
         s = settings
         return super().spec(scenario, aid).with_(
             M=getattr(s, "M", 300), iterations=getattr(s, "iterations", 3), quiet=getattr(s, "quiet", 0.1),
-            thresholds=list(getattr(s, "thresholds", THRESHOLDS)), seed=scenario.seed)
+            thresholds=list(getattr(s, "thresholds", THRESHOLDS)), ring_scale=getattr(s, "ring_scale", 4.0),
+            seed=scenario.seed)
 
     # ------------------------------------------------------------------ tick
 
@@ -152,9 +154,10 @@ class DnbpNode(Node):
         t0 = time.perf_counter()
         new = self.schedule.hear(src, msg.normal)
         z, sigma = self.ranges[src]
+        h = self.ring_scale * ring_thickness(msg.bandwidth, z, sigma, self.M) if self.ring_scale > 0 else None
         try:
             ring = nbp.range_message(msg.samples.astype(float), msg.weights.astype(float), z, sigma, self.rng, self.M,
-                                     bandwidth=ring_bandwidth(msg.bandwidth, z, sigma, self.M))
+                                     self.rule, bandwidth=h)
         except (ValueError, np.linalg.LinAlgError):
             return self.drop("invalid", f"belief from {src}")
         self.messages[src] = ring  # a refined belief replaces the sender's earlier one

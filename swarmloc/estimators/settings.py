@@ -86,6 +86,9 @@ class DnbpSettings(BaseModel):
                             "new message after its first send refines and re-sends it)")
     quiet: float = Field(0.1, gt=0, description="seconds without a new message after which a fault agent below its "
                          "threshold lowers it (3 -> 2 -> 1); in lockstep this takes effect at the slice's end")
+    ring_scale: float = Field(4.0, ge=0, description="kernel std of a ring message, in units of the ring's thickness "
+                              "(range noise, the sender's kernel and the spacing of M samples around the ring); 0: "
+                              "Silverman's rule over the ring's samples")
     thresholds: list[int] = Field([3, 2, 1], min_length=1, description="messages a fault agent needs before it sends, "
                                   "strictly decreasing, each >= 1 (the paper: 3, then 2, then 1)")
 
