@@ -23,6 +23,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 STUDIES = {
+    "wan2014-ring-kernel": ("estimator.params.ring_scale", "The ring's kernel: std in units of the ring's thickness "
+                            "(0: Silverman's rule)"),
     "wan2014-fig6a": ("sensors.gnss.normal_share", "Fig. 6(a): share of normal UAVs (GPS switching off)"),
     "wan2014-fig6b": ("radio.range_m", "Fig. 6(b): communication range R (m)"),
     "wan2014-fig6c": ("sensors.gnss.noise", "Fig. 6(c): GPS noise std (m), at R = 500 m"),
