@@ -59,12 +59,15 @@ def steady(study: Path, point: int, alg: str) -> tuple[float, int]:
 
 def table(study: Path, param: str) -> list[str]:
     rows = list(csv.DictReader(open(study / "summary.csv")))
-    lines = [f"| {param} | estimator | no-GPS mean error (m), 95% CI | all UAVs, last third (m) | runs |",
-             "|---|---|---|---|---|"]
+    nees = "nees_mean_mean" in rows[0]
+    lines = [f"| {param} | estimator | no-GPS mean error (m), 95% CI | all UAVs, last third (m) |"
+             + (" NEES (2 if consistent) |" if nees else "") + " runs |",
+             "|---|---|---|---|" + ("---|" if nees else "") + "---|"]
     for r in rows:
         s, n = steady(study, int(r["point"]), r["estimator"])
         lines.append(f"| {r[param]} | {r['estimator']} | {float(r['no_gnss_mean_error_m_mean']):.1f} "
-                     f"± {float(r['no_gnss_mean_error_m_ci95']):.1f} | {s:.1f} | {r['no_gnss_mean_error_m_n']} |")
+                     f"± {float(r['no_gnss_mean_error_m_ci95']):.1f} | {s:.1f} |"
+                     + (f" {float(r['nees_mean_mean']):.3g} |" if nees else "") + f" {r['no_gnss_mean_error_m_n']} |")
     return lines
 
 
