@@ -161,16 +161,32 @@ class GaussianMixture:
         x = np.asarray(x, dtype=float)
         with np.errstate(divide="ignore"):
             logw = np.log(self.weights)
-        t = self.component_logpdf(x)
-        # logsumexp over components, in place on the (n, M) table: the table is the cost of a
-        # belief update (one per factor), and each pass over it counts.
-        t += logw[None]
+        if self.shared:
+            # The (n, M) table is the cost of a belief update (one per factor), so it is touched
+            # as few times as possible. With whitened y, log w_j N(x_i; mu_j, H) =
+            # y_i . y_j + c_j - |y_i|^2 / 2, c_j = log w_j - |y_j|^2 / 2 - const / 2: the row
+            # term leaves the sum over j, so the table is one matrix product plus c.
+            xs = np.atleast_2d(x)
+            if xs.shape[1] != self.dim:
+                raise ValueError(f"points of dimension {xs.shape[1]}, mixture of dimension {self.dim}")
+            yx, ym = xs @ self._chol_inv.T, self.means @ self._chol_inv.T
+            const = self.dim * np.log(2.0 * np.pi) + self._logdet
+            t = yx @ ym.T
+            t += logw - 0.5 * ((ym * ym).sum(1) + const)
+            row = -0.5 * (yx * yx).sum(1)
+        else:
+            t = self.component_logpdf(x)
+            t += logw[None]
+            row = 0.0
         m = t.max(axis=1, keepdims=True)
         m[~np.isfinite(m)] = 0.0  # a point every component gives -inf (zero weights)
         t -= m
+        # Below e^-708 exp's results are subnormal, and computing them had doubled the time of
+        # a belief update; terms that small (relative to the largest, 1) change nothing.
+        np.maximum(t, -700.0, out=t)
         np.exp(t, out=t)
         with np.errstate(divide="ignore"):
-            lp = np.log(t.sum(axis=1)) + m[:, 0]
+            lp = np.log(t.sum(axis=1)) + m[:, 0] + row
         return float(lp[0]) if x.ndim == 1 else lp
 
     @staticmethod
