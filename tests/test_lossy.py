@@ -4,6 +4,8 @@ nodes that applied the same commits hold the same cross-covariances; the filter 
 (NEES inside the chi-square 95% bounds as often as the centralized filter's)."""
 
 import collections
+import concurrent.futures
+import multiprocessing
 
 import numpy as np
 import pytest
@@ -44,30 +46,39 @@ def check_versions(nodes, k):
         assert np.linalg.eigvalsh((joint + joint.T) / 2).min() > -1e-9, f"tick {k}: {holders} not PSD"
 
 
+def one_run(seed, loss, partition):
+    """One seeded run, checked tick by tick: its NEES series, mean errors, drops and the ranges
+    used after the heal (a worker process's task: runs share nothing)."""
+    sc = scenario(seed, loss, partition)
+    sim, nodes = Simulation(sc), make_nodes("ukf-dcl", sc)
+    used = []
+
+    def on_tick(k, frames):
+        check_versions(nodes, k)
+        used.append(sum(n.stats["measurements_used"] for n in nodes.values()))
+
+    record = InProcessRunner(sim, nodes).run(on_tick=on_tick)
+    compute_references(sc, record)
+    nees, err = {}, {}
+    for alg in ("ukf-dcl", "ukf-ccl", "il"):
+        tr = record.trace(alg)
+        nees[alg] = nees_series(record, tr)[1:]
+        err[alg] = position_errors(record, tr)[1:].mean()
+    # Every commit reached every node: the chain's own nodes, and the rest by replay.
+    assert len({tuple(sorted(n.version.items())) for n in nodes.values()}) == 1, f"seed {seed}: versions differ"
+    heal_k = int(HEAL / sc.clock.dt)
+    return nees, err, sum((n.drops for n in nodes.values()), collections.Counter()), used[-1] - used[heal_k]
+
+
 def monte_carlo(loss, partition):
-    nees, err = collections.defaultdict(list), collections.defaultdict(list)
-    drops, after_heal = collections.Counter(), 0
-    for seed in range(RUNS):
-        sc = scenario(seed, loss, partition)
-        sim, nodes = Simulation(sc), make_nodes("ukf-dcl", sc)
-        used = []
-
-        def on_tick(k, frames):
-            check_versions(nodes, k)
-            used.append(sum(n.stats["measurements_used"] for n in nodes.values()))
-
-        record = InProcessRunner(sim, nodes).run(on_tick=on_tick)
-        compute_references(sc, record)
-        for alg in ("ukf-dcl", "ukf-ccl", "il"):
-            tr = record.trace(alg)
-            nees[alg].append(nees_series(record, tr)[1:])
-            err[alg].append(position_errors(record, tr)[1:].mean())
-        drops += sum((n.drops for n in nodes.values()), collections.Counter())
-        heal_k = int(HEAL / sc.clock.dt)
-        after_heal += used[-1] - used[heal_k]
-        # Every commit reached every node: the chain's own nodes, and the rest by replay.
-        assert len({tuple(sorted(n.version.items())) for n in nodes.values()}) == 1, f"seed {seed}: versions differ"
-    return {a: np.stack(v) for a, v in nees.items()}, {a: np.mean(v) for a, v in err.items()}, drops, after_heal
+    # Two worker processes: the runs are independent and the suite has two cores. Forkserver,
+    # not fork: earlier tests may leave Zenoh's threads in this process, and a fork copies
+    # their locks.
+    with concurrent.futures.ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("forkserver")) as pool:
+        runs = list(pool.map(one_run, range(RUNS), [loss] * RUNS, [partition] * RUNS))
+    nees = {a: np.stack([r[0][a] for r in runs]) for a in runs[0][0]}
+    err = {a: np.mean([r[1][a] for r in runs]) for a in runs[0][1]}
+    return nees, err, sum((r[2] for r in runs), collections.Counter()), sum(r[3] for r in runs)
 
 
 def bounds(n_agents=4, dof=2, alpha=0.05):
