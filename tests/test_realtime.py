@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
+from conftest import Cli
 from swarmloc import scenario as S
 
 pytestmark = pytest.mark.slow
@@ -17,32 +18,46 @@ RUNS = 20
 
 def test_realtime_lossy_partitioned_monte_carlo(cli, tmp_path):
     nees, err, used = {"ukf-dcl": [], "ukf-ccl": []}, {"il": [], "ukf-dcl": []}, []
-    for seed in range(RUNS):
-        sc = S.load("wang2019").with_overrides(
-            seed=seed, **{"clock.mode": "realtime", "clock.speed": 10.0, "clock.duration": 40.0,
-                          "sensors.odometry.turn_rate_noise": 0.0, "sensors.range.probability": 0.8},
-            faults=[{"at": 0.0, "action": "loss", "probability": 0.2},
-                    {"at": 15.0, "action": "partition", "groups": [[1, 2], [3, 4]]}, {"at": 25.0, "action": "heal"}])
-        path = tmp_path / f"rt{seed}.yaml"
-        path.write_text(sc.to_yaml())
-        out = tmp_path / f"run{seed}"
-        p = cli.run("run", str(path), "--out", str(out), "--port", str(cli.port), "--swarm", cli.swarm, "--no-plots",
-                    timeout=120)
-        assert p.returncode == 0, p.stderr
-        m = json.loads((out / "metrics.json").read_text())
-        assert m["unresponsive_agents"] == [] and m["transport"] == "zenoh-realtime"
-        assert m["radio"]["dropped"].get("loss", 0) > 0 and m["radio"]["dropped"].get("partition", 0) > 0
-        stats = m["agent_stats"].values()
-        used.append(sum(s.get("measurements_used", 0) for s in stats))
-        assert sum(s["orphaned"] for s in stats) == 0
-        with np.load(out / "truth.npz") as t:
-            for a in nees:
-                with np.load(out / "estimates" / f"{a}.npz") as d:
-                    e = d["mean"] - t["state"]
-                    assert not np.isnan(e).any(), f"{a}: an agent missed a tick's estimate"
-                    nees[a].append(np.einsum("tni,tnij,tnj->tn", e, np.linalg.inv(d["cov"]), e)[1:])
-        for a in err:
-            err[a].append(m["estimators"][a]["mean_error_m"])
+    other = Cli(tmp_path)  # a second swarm on its own port: two runs at a time (most of a run is waiting)
+    for pair in range(0, RUNS, 2):
+        runs = []
+        for seed, c in zip((pair, pair + 1), (cli, other)):
+            sc = S.load("wang2019").with_overrides(
+                seed=seed, **{"clock.mode": "realtime", "clock.speed": 10.0, "clock.duration": 40.0,
+                              "sensors.odometry.turn_rate_noise": 0.0, "sensors.range.probability": 0.8},
+                faults=[{"at": 0.0, "action": "loss", "probability": 0.2},
+                        {"at": 15.0, "action": "partition", "groups": [[1, 2], [3, 4]]}, {"at": 25.0, "action": "heal"}])
+            path = tmp_path / f"rt{seed}.yaml"
+            path.write_text(sc.to_yaml())
+            runs.append((tmp_path / f"run{seed}", c.start_run(str(path), tmp_path / f"run{seed}")))
+        for out, run in runs:
+            _, stderr = run.communicate(timeout=120)
+            assert run.returncode == 0, stderr
+        for out, _ in runs:
+            check_run(out, nees, err, used)
+    other.cleanup()
+    check_monte_carlo(nees, err, used)
+
+
+def check_run(out, nees, err, used):
+    """One run's own promises; its NEES, errors and ranges used go into the Monte Carlo."""
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["unresponsive_agents"] == [] and m["transport"] == "zenoh-realtime"
+    assert m["radio"]["dropped"].get("loss", 0) > 0 and m["radio"]["dropped"].get("partition", 0) > 0
+    stats = m["agent_stats"].values()
+    used.append(sum(s.get("measurements_used", 0) for s in stats))
+    assert sum(s["orphaned"] for s in stats) == 0
+    with np.load(out / "truth.npz") as t:
+        for a in nees:
+            with np.load(out / "estimates" / f"{a}.npz") as d:
+                e = d["mean"] - t["state"]
+                assert not np.isnan(e).any(), f"{a}: an agent missed a tick's estimate"
+                nees[a].append(np.einsum("tni,tnij,tnj->tn", e, np.linalg.inv(d["cov"]), e)[1:])
+    for a in err:
+        err[a].append(m["estimators"][a]["mean_error_m"])
+
+
+def check_monte_carlo(nees, err, used):
     n = RUNS * 4
     lo, hi = chi2.ppf(0.025, 2 * n) / n, chi2.ppf(0.975, 2 * n) / n
     per_tick = {a: np.stack(v).mean(axis=(0, 2)) for a, v in nees.items()}
