@@ -191,7 +191,7 @@ def test_real_time_with_loss_still_localizes(cli, tmp_path):
     GNSS-denied agents end far better than their 300 m prior."""
     import json
 
-    sc = S.load("wan2014").with_overrides(**{"clock.mode": "realtime", "clock.duration": 8.0,
+    sc = S.load("wan2014").with_overrides(**{"clock.mode": "realtime", "clock.duration": 6.0,
                                              "estimator.params": {"M": 100},
                                              "faults": [{"at": 0.0, "action": "loss", "probability": 0.1}]})
     path = tmp_path / "w.yaml"

@@ -104,6 +104,20 @@ def test_error_falls_as_measurement_probability_rises():
     assert all(a > b for a, b in zip(errs, errs[1:])), dict(zip(ps, errs))
 
 
+def partitioned_run(seed: int) -> tuple[dict, int]:
+    """One seed of the partitioned swarm (a worker's task), its nodes checked at the end: every
+    covariance PSD, equal versions holding equal cross-covariances."""
+    sc = S.load("random7").with_overrides(**{"radio.range_m": 60.0, "seed": seed})
+    m, nodes = run(sc)
+    for n in nodes.values():
+        P = n.estimate().cov
+        assert np.allclose(P, P.T) and np.linalg.eigvalsh(P).min() > 0
+        for j in nodes:  # nodes that applied the same commits hold the same cross-covariances
+            if nodes[j].version == n.version:
+                np.testing.assert_allclose(nodes[j]._block(n.id), n._block(j).T, atol=1e-9)
+    return m, sum(n.stats["outsider_commits"] for n in nodes.values())
+
+
 def test_partitioned_swarm_stays_consistent():
     """Radio range shorter than the swarm (60 m): parts cooperate inside themselves, nodes out
     of a chain's reach take its commit later as outsiders, and over 6 seeds UKF-DCL is as
@@ -111,22 +125,14 @@ def test_partitioned_swarm_stays_consistent():
     the centralized filter and dead reckoning in accuracy."""
     nees = {"ukf-dcl": [], "ukf-ccl": []}
     err = {"il": [], "ukf-dcl": [], "ukf-ccl": []}
-    outsiders = 0
-    for seed in range(1, 7):
-        sc = S.load("random7").with_overrides(**{"radio.range_m": 60.0, "seed": seed})
-        m, nodes = run(sc)
-        outsiders += sum(n.stats["outsider_commits"] for n in nodes.values())
+    with concurrent.futures.ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("forkserver")) as pool:
+        runs = list(pool.map(partitioned_run, range(1, 7)))
+    for m, outsiders in runs:
         for a in err:
             err[a].append(m["estimators"][a]["mean_error_m"])
         for a in nees:
             nees[a] += [v["mean_nees"] for v in m["estimators"][a]["agents"].values()]
-        for n in nodes.values():
-            P = n.estimate().cov
-            assert np.allclose(P, P.T) and np.linalg.eigvalsh(P).min() > 0
-            for j in nodes:  # nodes that applied the same commits hold the same cross-covariances
-                if nodes[j].version == n.version:
-                    np.testing.assert_allclose(nodes[j]._block(n.id), n._block(j).T, atol=1e-9)
-    assert outsiders > 0
+    assert sum(o for _, o in runs) > 0
     mean = {a: np.mean(v) for a, v in nees.items()}
     assert abs(mean["ukf-dcl"] - mean["ukf-ccl"]) <= 0.1 * mean["ukf-ccl"], mean
     assert np.mean(err["ukf-ccl"]) < np.mean(err["ukf-dcl"]) < np.mean(err["il"]), {a: np.mean(v) for a, v in err.items()}
