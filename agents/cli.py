@@ -241,27 +241,20 @@ def study(
 ):
     """Monte Carlo study: sweep scenario parameters, many seeded in-process runs per point, in
     parallel; resumable after Ctrl-C; writes results.csv, summary.csv and plots."""
-    from rich.console import Console
+    import signal
+    import subprocess
 
-    from swarmloc import study as st
-
+    # The study drives netsim's world and radio, so it runs as netsim's process, as `run` does.
+    args = [str(spec), *(["--out", str(out)] if out else []), *(["--runs", str(runs)] if runs else []),
+            *(["--workers", str(workers)] if workers else []), *(["--scheduler", scheduler] if scheduler else []),
+            *([] if plots else ["--no-plots"]), *(["--force"] if force else [])]
+    child = subprocess.Popen([sys.executable, "-m", "netsim.study", *args])
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the study; it stops and says how to resume
     try:
-        s = st.load_spec(spec)
-        out = out or Path("studies") / s.name
-        result = st.run_study(s, out, runs=runs, workers=workers, scheduler=scheduler, plots=plots, force=force,
-                              console=Console(stderr=True))
-    except st.StudyError as exc:
-        raise Failure(str(exc), 2) from None
-    except st.RunFailed as exc:
-        raise Failure(f"{exc}; the finished runs are kept in {out}/runs.jsonl", 1) from None
-    except KeyboardInterrupt:
-        again = " ".join(["swarmloc study", str(spec), "--out", str(out), *(["--runs", str(runs)] if runs else []),
-                          *(["--scheduler", scheduler] if scheduler else [])])
-        typer.echo(f"interrupted: the finished runs are kept in {out}/runs.jsonl; resume with: {again}", err=True)
-        raise typer.Exit(130)
-    _console().print(st.summary_table(result, s.metrics, [p.param for p in s.sweep]))
-    typer.echo(f"{result.executed} runs computed, {result.done - result.executed} taken from {out}/runs.jsonl; "
-               f"wrote {', '.join(str(f.relative_to(out)) for f in result.files)} in {out}")
+        code = child.wait()
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    raise typer.Exit(code)
 
 
 # ------------------------------------------------------------------------------------ agent

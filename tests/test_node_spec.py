@@ -2,6 +2,7 @@
 and `python -m agents.daemon --spec` builds, without a scenario, pydantic or a CLI framework."""
 
 import json
+from pathlib import Path
 import subprocess
 import sys
 
@@ -63,3 +64,16 @@ def test_daemon_entry_refuses_a_bad_spec(tmp_path):
     p = subprocess.run([sys.executable, "-m", "agents.daemon", "--id", "1", "--spec", str(bad), "--connect",
                         "tcp/127.0.0.1:9"], capture_output=True, text=True, timeout=30)
     assert p.returncode == 2 and "--spec" in p.stderr
+
+
+def test_swarmloc_imports_neither_agents_nor_netsim():
+    """The import directions of docs/design.md: agents -> swarmloc and netsim -> swarmloc only."""
+    import re
+
+    root = Path(__file__).resolve().parent.parent
+    pattern = re.compile(r"^\s*(from|import)\s+(agents|netsim)\b", re.M)
+    offenders = [str(p.relative_to(root)) for p in sorted((root / "swarmloc").rglob("*.py")) if pattern.search(p.read_text())]
+    assert offenders == []
+    offenders = [str(p.relative_to(root)) for p in sorted((root / "agents").rglob("*.py"))
+                 if re.search(r"^\s*(from|import)\s+netsim\b", p.read_text(), re.M)]
+    assert offenders == []

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from swarmloc.study import StudyError, load_spec, parse_spec, plan, run_study
+from netsim.study import StudyError, load_spec, parse_spec, plan, run_study
 
 SPEC = {"name": "tiny", "scenario": "wang2019", "overrides": {"clock.duration": 5.0}, "estimator": "il",
         "references": ["ukf-ccl"], "sweep": [{"param": "sensors.range.noise", "values": [0.5, 2.0]}],
@@ -87,7 +87,7 @@ def test_dask_cluster_gives_the_same_table(baseline, tmp_path):
 
 
 def test_importing_the_study_module_does_not_import_dask():
-    code = "import sys, swarmloc.study; assert not any(m.split('.')[0] in ('dask', 'distributed') for m in sys.modules)"
+    code = "import sys, netsim.study; assert not any(m.split('.')[0] in ('dask', 'distributed') for m in sys.modules)"
     subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
 
 

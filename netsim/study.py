@@ -384,8 +384,9 @@ def _pool_context():
 
     if "forkserver" in multiprocessing.get_all_start_methods():
         ctx = multiprocessing.get_context("forkserver")
-        ctx.set_forkserver_preload(["swarmloc.study", "netsim.sim", "swarmloc.estimators", "swarmloc.runner",
-                                    "swarmloc.results"])
+        # Not this module: run as `python -m netsim.study`, a worker imports it as the parent's
+        # main module, and preloaded it would be there twice (runpy warns).
+        ctx.set_forkserver_preload(["netsim.sim", "swarmloc.estimators", "swarmloc.runner", "swarmloc.results"])
         return ctx
     return multiprocessing.get_context("spawn")
 
@@ -832,3 +833,46 @@ def write_plots(out: Path, p: Plan, summary: list[dict], metrics: list[str], run
         plt.close(fig)
         files.append(path)
     return files
+
+
+def main(argv=None) -> int:
+    """`python -m netsim.study SPEC`: what `swarmloc study` runs (docs/study.md)."""
+    import argparse
+    import sys
+
+    from rich.console import Console
+
+    p = argparse.ArgumentParser(prog="swarmloc study", description=__doc__.splitlines()[0])
+    p.add_argument("spec", type=Path)
+    p.add_argument("--out", "-o", type=Path)
+    p.add_argument("--runs", type=int)
+    p.add_argument("--workers", type=int)
+    p.add_argument("--scheduler")
+    p.add_argument("--no-plots", action="store_true")
+    p.add_argument("--force", action="store_true")
+    a = p.parse_args(argv)
+    err, out = Console(stderr=True), a.out
+    try:
+        s = load_spec(a.spec)
+        out = out or Path("studies") / s.name
+        result = run_study(s, out, runs=a.runs, workers=a.workers, scheduler=a.scheduler, plots=not a.no_plots,
+                           force=a.force, console=err)
+    except StudyError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except RunFailed as exc:
+        print(f"error: {exc}; the finished runs are kept in {out}/runs.jsonl", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        again = " ".join(["swarmloc study", str(a.spec), "--out", str(out), *(["--runs", str(a.runs)] if a.runs else []),
+                          *(["--scheduler", a.scheduler] if a.scheduler else [])])
+        print(f"interrupted: the finished runs are kept in {out}/runs.jsonl; resume with: {again}", file=sys.stderr)
+        return 130
+    Console().print(summary_table(result, s.metrics, [q.param for q in s.sweep]))
+    print(f"{result.executed} runs computed, {result.done - result.executed} taken from {out}/runs.jsonl; "
+          f"wrote {', '.join(str(f.relative_to(out)) for f in result.files)} in {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
