@@ -264,6 +264,55 @@ class JointCslCtl(CentralizedUKF):
         return Estimate(e.k, e.mean, e.cov, e.nis, self.target_estimates())
 
 
+class TickGather:
+    """What every agent broadcast in one tick, for the nodes that run a tick on everyone's frames
+    (the module docstring: which agents are expected, late, early and duplicate broadcasts)."""
+
+    def __init__(self, me: int, ids: list[int], forget_after: int):
+        self.me, self.ids, self.forget_after = me, ids, forget_after
+        self.held: dict[int, dict[int, object]] = {}  # tick -> sender -> what it sent
+        self.pending: int | None = None  # the tick being gathered
+        self.done = -1  # the last tick run
+        self.heard: dict[int, int] = {}
+        self.first: int | None = None
+
+    def open(self, k: int, own) -> None:
+        self.first = k if self.first is None else self.first
+        self.pending = k
+        self.held.setdefault(k, {})[self.me] = own
+
+    def offer(self, src: int, k: int, item) -> str | None:
+        """Hold a neighbour's broadcast of tick k; the drop reason if it is not taken."""
+        if src not in self.ids or src == self.me:
+            return "invalid"
+        self.heard[src] = max(self.heard.get(src, k), k)
+        if k <= self.done:
+            return "late"
+        if k > (self.pending if self.pending is not None else self.done) + MAX_AHEAD:
+            return "early"
+        tick = self.held.setdefault(k, {})
+        if src in tick:
+            return "duplicate"
+        tick[src] = item
+        return None
+
+    def expected(self, k: int) -> set[int]:
+        start = self.first if self.first is not None else k
+        return {a for a in self.ids if a == self.me or k - self.heard.get(a, start) <= self.forget_after}
+
+    def ready(self) -> bool:
+        return self.pending is not None and self.expected(self.pending) <= set(self.held.get(self.pending, {}))
+
+    def close(self) -> tuple[int, dict, bool]:
+        """The pending tick, what was held for it, and whether every expected agent's is there."""
+        complete = self.ready()
+        k, self.pending, self.done = self.pending, None, self.pending
+        items = self.held.pop(k, {})
+        for old in [t for t in self.held if t <= k]:
+            del self.held[old]
+        return k, items, complete
+
+
 class CslCtlNode(Node):
     """One agent's CSL-CTL: its replica of the joint problem, fed by everyone's shares."""
 
@@ -280,10 +329,7 @@ class CslCtlNode(Node):
                              target_process_noise=target_process_noise, min_ranges=min_ranges)
         self.replica = self._replica({a: self.priors[i] for i, a in enumerate(self.ids)}, P0)
         self.wait, self.forget_after = float(wait), int(forget_after)
-        self.frames: dict[int, dict[int, Sensors]] = {}  # tick -> sender -> frame
-        self.pending: int | None = None  # the tick whose shares are being gathered
-        self.heard: dict[int, int] = {}
-        self.first: int | None = None
+        self.gather = TickGather(self.id, self.ids, self.forget_after)  # the shares, Sensors each
         self._stats = {"incomplete_runs": 0}  # ticks run without every expected share
 
     @property
@@ -308,60 +354,42 @@ class CslCtlNode(Node):
     # ------------------------------------------------------------------ tick
 
     def step(self, sensors: Sensors) -> list[Send]:
-        out: list = []
-        if self.pending is not None:
+        if self.gather.pending is not None:
             self._run()
         k = sensors.k
         if k <= self.k:
             return self.drop("stale", f"own frame of tick {k}")
-        self.first = k if self.first is None else self.first
         # The frame is handled (lockstep's `done` says so) though the tick runs when the shares are in.
-        self.k = self.pending = k
+        self.k = k
         self.nis = []
-        self.frames.setdefault(k, {})[self.id] = sensors
-        out.append(Send(CslShare(k, sensors), None))
-        if not self._ready(k):
-            out.append(Timer(self.wait, RUN))
-        else:
+        self.gather.open(k, sensors)
+        out: list = [Send(CslShare(k, sensors), None)]
+        if self.gather.ready():
             self._run()
+        else:
+            out.append(Timer(self.wait, RUN))
         return out
 
     def on_timer(self, tag: str, t: float) -> list:
-        if tag == RUN and self.pending is not None:
+        if tag == RUN and self.gather.pending is not None:
             self._run()
         return []
 
     def receive(self, src: int, msg) -> list[Send]:
         if not isinstance(msg, CslShare):
             return self.drop("unexpected", type(msg).__name__)
-        if src not in self.ids or src == self.id or msg.sensors.k != msg.k:
+        if msg.sensors.k != msg.k:
             return self.drop("invalid", f"share from {src}")
-        self.heard[src] = max(self.heard.get(src, msg.k), msg.k)
-        if msg.k <= self.replica.k:
-            return self.drop("late", f"share of tick {msg.k} from {src}")
-        if msg.k > (self.pending if self.pending is not None else self.replica.k) + MAX_AHEAD:
-            return self.drop("early", f"share of tick {msg.k} from {src}")
-        tick = self.frames.setdefault(msg.k, {})
-        if src in tick:
-            return self.drop("duplicate", f"share of tick {msg.k} from {src}")
-        tick[src] = msg.sensors
-        if msg.k == self.pending and self._ready(msg.k):
+        reason = self.gather.offer(src, msg.k, msg.sensors)
+        if reason is not None:
+            return self.drop(reason, f"share of tick {msg.k} from {src}")
+        if self.gather.ready():
             self._run()
         return []
 
-    def expected(self, k: int) -> set[int]:
-        start = self.first if self.first is not None else k
-        return {a for a in self.ids if a == self.id or k - self.heard.get(a, start) <= self.forget_after}
-
-    def _ready(self, k: int) -> bool:
-        return self.expected(k) <= set(self.frames.get(k, {}))
-
     def _run(self) -> None:
-        k, self.pending = self.pending, None
-        self._stats["incomplete_runs"] += not self._ready(k)
-        frames = self.frames.pop(k, {})
-        for old in [t for t in self.frames if t <= k]:
-            del self.frames[old]
+        k, frames, complete = self.gather.close()
+        self._stats["incomplete_runs"] += not complete
         self.replica.step(frames, k)
         b = self.replica.block(self.id)
         self.x, self.P = self.replica.x[b].copy(), self.replica.P[b, b].copy()
@@ -371,10 +399,11 @@ class CslCtlNode(Node):
         """After the tick has run, this agent's block and the targets of the replica. While the
         tick waits for shares, its own prediction on its own odometry (no NIS)."""
         targets = self.replica.target_estimates()
-        frame = self.frames.get(self.pending, {}).get(self.id) if self.pending is not None else None
-        if frame is not None and frame.odometry is not None and self.pending > self.replica.k:
+        k = self.gather.pending
+        frame = self.gather.held.get(k, {}).get(self.id) if k is not None else None
+        if frame is not None and frame.odometry is not None and k > self.replica.k:
             x, F, Q = self.model.predict(self.x, odometry_of(frame))
-            return Estimate(self.pending, x, F @ self.P @ F.T + Q, (), targets)
+            return Estimate(k, x, F @ self.P @ F.T + Q, (), targets)
         return Estimate(self.replica.k, self.x.copy(), self.P.copy(), (), targets)
 
     def resume(self, k, x, P) -> None:
@@ -385,7 +414,8 @@ class CslCtlNode(Node):
         b = self.replica.block(self.id)
         self.replica.P[b, b] = np.asarray(P, float)
         self.replica.k = int(k)
-        self.frames, self.pending = {}, None
+        self.gather = TickGather(self.id, self.ids, self.forget_after)
+        self.gather.done = int(k)
 
 
 class IlCtlNode(IndependentNode):
@@ -399,11 +429,7 @@ class IlCtlNode(IndependentNode):
         self.ids = [int(a) for a in ids]
         self.min_ranges, self.q_target = int(min_ranges), float(target_process_noise)
         self.wait, self.forget_after = float(wait), int(forget_after)
-        self.fixes: dict[int, dict[int, CtlFix]] = {}
-        self.pending: int | None = None
-        self.done = -1
-        self.heard: dict[int, int] = {}
-        self.first: int | None = None
+        self.gather = TickGather(self.id, self.ids, self.forget_after)  # the fixes, CtlFix each
         self.targets: dict[int, tuple[np.ndarray, np.ndarray, int]] = {}  # o -> (mean, cov, tick)
         self.dt = 0.0  # the clock's tick length, from the odometry: a static target's process noise
         self.stats = {"incomplete_runs": 0, "ls_failed": 0, "unused_target_ranges": 0, "undecided_first_fix": 0}
@@ -417,59 +443,43 @@ class IlCtlNode(IndependentNode):
             wait=getattr(settings, "wait", 0.1), forget_after=getattr(settings, "forget_after", 10))
 
     def step(self, sensors) -> list[Send]:
-        if self.pending is not None:
+        if self.gather.pending is not None:
             self._run()
-        if sensors.k <= self.done:
+        if sensors.k <= self.gather.done:
             return self.drop("stale", f"own frame of tick {sensors.k}")
         super().step(sensors)
         k = sensors.k
         self.dt = sensors.odometry.dt if sensors.odometry is not None else self.dt
-        self.first = k if self.first is None else self.first
         p = self.model.position_dim
         fix = CtlFix(k, self.x[:p].copy(), self.P[:p, :p].copy(), list(sensors.targets))
-        self.pending = k
-        self.fixes.setdefault(k, {})[self.id] = fix
+        self.gather.open(k, fix)
         out: list = [Send(fix, None)]
-        if self.expected(k) <= set(self.fixes[k]):
+        if self.gather.ready():
             self._run()
         else:
             out.append(Timer(self.wait, RUN))
         return out
 
     def on_timer(self, tag: str, t: float) -> list:
-        if tag == RUN and self.pending is not None:
+        if tag == RUN and self.gather.pending is not None:
             self._run()
         return []
 
     def receive(self, src: int, msg) -> list[Send]:
         if not isinstance(msg, CtlFix):
             return self.drop("unexpected", type(msg).__name__)
-        if src not in self.ids or src == self.id or msg.mean.shape != (self.model.position_dim,):
+        if msg.mean.shape != (self.model.position_dim,):
             return self.drop("invalid", f"fix from {src}")
-        self.heard[src] = max(self.heard.get(src, msg.k), msg.k)
-        if msg.k <= self.done:
-            return self.drop("late", f"fix of tick {msg.k} from {src}")
-        if msg.k > (self.pending if self.pending is not None else self.done) + MAX_AHEAD:
-            return self.drop("early", f"fix of tick {msg.k} from {src}")
-        tick = self.fixes.setdefault(msg.k, {})
-        if src in tick:
-            return self.drop("duplicate", f"fix of tick {msg.k} from {src}")
-        tick[src] = msg
-        if msg.k == self.pending and self.expected(msg.k) <= set(tick):
+        reason = self.gather.offer(src, msg.k, msg)
+        if reason is not None:
+            return self.drop(reason, f"fix of tick {msg.k} from {src}")
+        if self.gather.ready():
             self._run()
         return []
 
-    def expected(self, k: int) -> set[int]:
-        start = self.first if self.first is not None else k
-        return {a for a in self.ids if a == self.id or k - self.heard.get(a, start) <= self.forget_after}
-
     def _run(self) -> None:
-        k, self.pending = self.pending, None
-        self.stats["incomplete_runs"] += not self.expected(k) <= set(self.fixes.get(k, {}))
-        fixes = self.fixes.pop(k, {})
-        for old in [t for t in self.fixes if t <= k]:
-            del self.fixes[old]
-        self.done = k
+        k, fixes, complete = self.gather.close()
+        self.stats["incomplete_runs"] += not complete
         rows = [(f.mean, r) for _, f in sorted(fixes.items()) for r in f.targets]
         for o in sorted({r.target for _, r in rows}):
             mine = [(p, r) for p, r in rows if r.target == o]
