@@ -106,6 +106,19 @@ class TargetRangeMsg:
     std: Annotated[float, Float(lo=0.0)]
 
 
+@message("range_bearing")
+class RangeBearingMsg:
+    """A range (m) and a bearing (rad, in the measurer's body frame: counter-clockwise from its
+    heading, in [-pi, pi)) to `target`: another agent (Sensors.rb) or a landmark of the
+    scenario's `world.landmarks` map (Sensors.landmarks, the landmarks' own id space)."""
+
+    target: Id
+    range: Annotated[float, Float(lo=0.0)]
+    bearing: Annotated[float, Float()]
+    range_std: Annotated[float, Float(lo=0.0)]
+    bearing_std: Annotated[float, Float(lo=0.0)]
+
+
 @message("align")
 class AlignMsg:
     """A UAS's pre-flight alignment, in its tick-0 frame only: its initial state estimate in
@@ -132,6 +145,8 @@ class Sensors:
     relpos: Annotated[list, ListOf(Nested(RelPosMsg), max_len=64)] = field(default_factory=list)
     align: Annotated[AlignMsg | None, Optional(Nested(AlignMsg))] = None
     targets: Annotated[list, ListOf(Nested(TargetRangeMsg), max_len=64)] = field(default_factory=list)
+    rb: Annotated[list, ListOf(Nested(RangeBearingMsg), max_len=64)] = field(default_factory=list)
+    landmarks: Annotated[list, ListOf(Nested(RangeBearingMsg), max_len=64)] = field(default_factory=list)
 
 
 @message("truth")
