@@ -146,8 +146,32 @@ class TargetSpec(_Strict):
         return self
 
 
+class LandmarkSpec(_Strict):
+    """A fixed, known point the platforms observe by range and bearing (`sensors.range_bearing`)."""
+
+    id: int = Field(ge=0, description="landmark id, unique among the landmarks (its own id space, not the agents')")
+    position: list[float] = Field(description="position (m), 2 numbers")
+
+    @field_validator("position")
+    @classmethod
+    def _planar(cls, v):
+        if len(v) != 2 or not all(math.isfinite(x) for x in v):
+            raise ValueError("position must be 2 finite numbers (landmarks are planar)")
+        return v
+
+
 class World(_Strict):
+    source: Literal["simulated", "mrclam"] = Field("simulated", description="simulated: netsim simulates the agents' "
+                                                   "motion and sensors; mrclam: it replays a recorded MR.CLAM dataset "
+                                                   "(docs/replay.md), and agents and landmarks default to the "
+                                                   "recording's")
+    path: str | None = Field(None, description="mrclam: the dataset directory (relative to the scenario file's "
+                             "directory, or absolute)")
+    robots: list[int] | None = Field(None, description="mrclam: the recorded robots to replay as agents; null: all")
+    offset: float = Field(0.0, ge=0, description="mrclam: seconds into the recording at which the run starts")
     agents: list[AgentSpec] = Field(min_length=1)
+    landmarks: list[LandmarkSpec] = Field(default_factory=list, description="the landmark map: known to the "
+                                          "estimators, observed by range and bearing (`sensors.range_bearing`)")
     targets: list[TargetSpec] = Field(default_factory=list, description="targets to localize (CSL-CTL, IL-CTL)")
     stop_distance: float | None = Field(None, gt=0, description="the run ends at the first tick at which an agent is "
                                         "within this distance of a target (m); null: it runs `clock.duration`")
@@ -162,6 +186,13 @@ class World(_Strict):
 
     @model_validator(mode="after")
     def _targets(self):
+        lm = [m.id for m in self.landmarks]
+        if len(set(lm)) != len(lm):
+            raise ValueError(f"landmark ids must be unique, got {lm}")
+        if self.source == "mrclam" and not self.path:
+            raise ValueError("source mrclam needs `path`, the dataset directory")
+        if self.source == "simulated" and (self.path is not None or self.robots is not None or self.offset):
+            raise ValueError("path, robots and offset are for a recorded source (source: mrclam)")
         ids = [t.id for t in self.targets]
         if len(set(ids)) != len(ids):
             raise ValueError(f"target ids must be unique, got {ids}")
@@ -234,7 +265,20 @@ class RelPosSensor(_Strict):
     max_range: float = Field(math.inf, gt=0, description="sensing range (m)")
 
 
+class RangeBearingSensor(_Strict):
+    """Range and bearing in the measuring platform's body frame (a camera reading barcodes, as on
+    the MR.CLAM robots). netsim produces them when it replays a recording; a simulated world
+    does not (yet)."""
+
+    robots: bool = Field(True, description="observations of other agents are delivered")
+    landmarks: bool = Field(True, description="observations of the landmarks of `world.landmarks` are delivered "
+                            "(the map is known); false: the swarm has only its odometry and each other")
+    range_noise: float = Field(0.1, gt=0, description="std of a range (m), as the estimators assume it")
+    bearing_noise: float = Field(0.05, gt=0, description="std of a bearing (rad), as the estimators assume it")
+
+
 class Sensors(_Strict):
+    range_bearing: RangeBearingSensor = Field(default_factory=RangeBearingSensor)
     odometry: OdometrySensor = Field(default_factory=OdometrySensor)
     range: RangeSensor = Field(default_factory=RangeSensor)
     gnss: GnssSensor = Field(default_factory=GnssSensor)
@@ -256,6 +300,13 @@ class Estimation(_Strict):
                                 "which makes NEES read low until the process noise dominates)")
     spread: float | None = Field(None, gt=0, description="unscented transform spread n + lambda; default: "
                                  "twice the state dimension (no negative sigma weight)")
+    gate: float | None = Field(None, gt=0, lt=1, description="chi-square innovation gate: a measurement whose NIS "
+                               "exceeds this quantile of the chi-square distribution of its dimension is rejected "
+                               "(counted); null: no gate. Estimators with a gate: ekf, ekf-ci and ekf-ccl on "
+                               "planar-pose, ukf-dcl, ukf-ccl (docs/replay.md)")
+    gate_open_after: int = Field(10, ge=1, description="after this many consecutive rejections of one platform's (or "
+                                 "pair's) measurements the gate stands open for it until a measurement passes again, "
+                                 "so a bad stretch of odometry cannot lock a platform out for good")
     rejoin_std: float | None = Field(15.0, gt=0, description="UKF-DCL: a node whose position std (largest axis, m) "
                                      "exceeds this is lost (a restart, a long isolation): it takes no range into its "
                                      "filter until a window of ranges pins its position down by multilateration; "
