@@ -12,14 +12,14 @@ import math
 
 import numpy as np
 
-from swarmloc.messages import GnssMsg, OdometryMsg, RangeMsg, Sensors, TargetRangeMsg
+from swarmloc.messages import GnssMsg, OdometryMsg, RangeBearingMsg, RangeMsg, Sensors, TargetRangeMsg
 from swarmloc.scenario import CircleMotion, Scenario
 
 PLANAR_MODELS = ("planar-speed-heading", "planar-pose")
 
 
 def streams(seed: int) -> dict[str, np.random.Generator]:
-    names = ("motion", "odometry", "range", "radio", "loss", "gnss", "target", "gnss_state")
+    names = ("motion", "odometry", "range", "radio", "loss", "gnss", "target", "gnss_state", "bearing")
     children = np.random.SeedSequence(seed).spawn(len(names))
     return {n: np.random.default_rng(c) for n, c in zip(names, children)}
 
@@ -154,8 +154,40 @@ class World:
         ranges = self._ranges()
         gnss = self._gnss(gnss_ok)
         seen = self._target_ranges()
-        return {a: Sensors(self.k, self.t, odometry[a], ranges.get(a, []), gnss.get(a), targets=seen.get(a, []))
+        rb, marks = self._range_bearing()
+        return {a: Sensors(self.k, self.t, odometry[a], ranges.get(a, []), gnss.get(a), targets=seen.get(a, []),
+                           rb=rb.get(a, []), landmarks=marks.get(a, []))
                 for a in self.planar_ids}
+
+    def _range_bearing(self) -> tuple[dict[int, list[RangeBearingMsg]], dict[int, list[RangeBearingMsg]]]:
+        """Every planar-pose agent's range and body-frame bearing to every other agent, then to
+        every landmark, within max_range. Noise is drawn for every pair in range or not (agents
+        first, then landmarks, in id order), so what is delivered never shifts another draw."""
+        cfg = self.sc.sensors.range_bearing
+        if not cfg.enabled:
+            return {}, {}
+        ids = [a for a in self.planar_ids if self.sc.agent(a).model == "planar-pose"]
+        marks = sorted(self.sc.world.landmarks, key=lambda m: m.id)
+        at = np.array([self.pos[a] for a in ids]).reshape(len(ids), 2)
+        heading = np.array([self.heading[a] for a in ids])
+        rng = self.rng["bearing"]
+        out: list[dict[int, list[RangeBearingMsg]]] = []
+        for targets, ok in ((at, cfg.robots), (np.array([m.position for m in marks]).reshape(-1, 2), cfg.landmarks)):
+            d = targets[None, :, :] - at[:, None, :]
+            r = np.linalg.norm(d, axis=-1)
+            b = np.arctan2(d[..., 1], d[..., 0]) - heading[:, None]
+            noise = rng.standard_normal((2,) + r.shape)
+            r_meas = np.maximum(r + cfg.range_noise * noise[0], 0.0)
+            b_meas = (b + cfg.bearing_noise * noise[1] + np.pi) % (2 * np.pi) - np.pi
+            names = ids if targets is at else [m.id for m in marks]
+            seen: dict[int, list[RangeBearingMsg]] = {}
+            for i, a in enumerate(ids):
+                for j, o in enumerate(names):
+                    if ok and r[i, j] <= cfg.max_range and not (targets is at and i == j):
+                        seen.setdefault(a, []).append(RangeBearingMsg(o, float(r_meas[i, j]), float(b_meas[i, j]),
+                                                                      cfg.range_noise, cfg.bearing_noise))
+            out.append({a: v[:64] for a, v in seen.items()})  # what a frame carries (docs/wire.md)
+        return out[0], out[1]
 
     def _target_ranges(self) -> dict[int, list[TargetRangeMsg]]:
         """Targets move first (constant velocity); then each agent within the detection range

@@ -267,9 +267,12 @@ class RelPosSensor(_Strict):
 
 class RangeBearingSensor(_Strict):
     """Range and bearing in the measuring platform's body frame (a camera reading barcodes, as on
-    the MR.CLAM robots). netsim produces them when it replays a recording; a simulated world
-    does not (yet)."""
+    the MR.CLAM robots): a replayed recording delivers what it recorded; a simulated planar-pose
+    swarm measures them when `enabled`."""
 
+    enabled: bool = Field(False, description="simulated world: every planar-pose agent measures every other agent and "
+                          "landmark within max_range, every tick (a replay ignores this: it has its recording)")
+    max_range: float = Field(math.inf, gt=0, description="simulated world: sensing range (m)")
     robots: bool = Field(True, description="observations of other agents are delivered")
     landmarks: bool = Field(True, description="observations of the landmarks of `world.landmarks` are delivered "
                             "(the map is known); false: the swarm has only its odometry and each other")
