@@ -121,10 +121,19 @@ class RadioLog:
                 "reason": np.array(REASONS, dtype="U16")[code.astype(np.intp)]}
 
 
+def world_of(scenario: Scenario, seed: int | None = None):
+    """The scenario's world: simulated, or a recording replayed (world.source)."""
+    if scenario.world.source == "mrclam":
+        from netsim.replay import ReplayWorld
+
+        return ReplayWorld(scenario, seed)
+    return World(scenario, seed)
+
+
 class Simulation:
     def __init__(self, scenario: Scenario, seed: int | None = None):
         self.sc = scenario
-        self.world = World(scenario, seed)
+        self.world = world_of(scenario, seed)
         rng = streams(scenario.seed if seed is None else seed)
         self.ids = scenario.agent_ids
         self.steps = self.world.steps

@@ -296,6 +296,24 @@ def _target_metrics(record: RunRecord, trace: Trace) -> dict:
     return out
 
 
+def heading_errors(record: RunRecord, trace: Trace) -> np.ndarray:
+    """Heading error (rad, wrapped) per tick and agent (T, N); NaN for agents without a heading
+    in their state (a planar-pose robot has one)."""
+    truth = record.truth_array()
+    out = np.full(truth.shape[:2], np.nan)
+    for ci, a in enumerate(record.ids):
+        att = record.models[a].layout.att_idx
+        if len(att) == 1:
+            i = att[0]
+            out[:, ci] = np.abs(np.remainder(trace.mean[:, ci, i] - truth[:, ci, i] + np.pi, 2 * np.pi) - np.pi)
+    return out
+
+
+def _rms(x: np.ndarray) -> float | None:
+    x = x[~np.isnan(x)]
+    return float(np.sqrt(np.mean(x**2))) if x.size else None
+
+
 def metrics(record: RunRecord, algorithms: list[str]) -> dict:
     """Per estimator and agent: position error (mean over ticks 1.., final, max), NEES and
     NIS averages with their two-sided 95% chi-square bounds; with GNSS in the swarm, the mean
@@ -308,6 +326,7 @@ def metrics(record: RunRecord, algorithms: list[str]) -> dict:
     for alg in algorithms:
         tr = record.trace(alg)
         err = position_errors(record, tr)
+        head = heading_errors(record, tr)
         nees = nees_series(record, tr)
         nis = record.nis.get(alg, [])
         per = {}
@@ -324,6 +343,8 @@ def metrics(record: RunRecord, algorithms: list[str]) -> dict:
                 "mean_error_m": float(valid.mean()) if valid.size else None,
                 "final_error_m": float(col[-1]) if col.size and not np.isnan(col[-1]) else None,
                 "max_error_m": float(valid.max()) if valid.size else None,
+                "rmse_m": _rms(col),
+                "heading_rmse_rad": _rms(head[1:, ci]),
                 "mean_nees": float(ne.mean()) if ne.size else None,
                 "nees": _average_with_bounds(ne, np.full(ne.size, record.dims[ci])),
                 "nis": _average_with_bounds(np.array([v for v, _ in mine]), np.array([d for _, d in mine], np.int64)),
@@ -333,6 +354,7 @@ def metrics(record: RunRecord, algorithms: list[str]) -> dict:
         ne, dof = np.concatenate(all_nees), np.concatenate(all_dof)
         out["estimators"][alg] = {
             "agents": per, "mean_error_m": float(np.mean(vals)) if vals else None,
+            "rmse_m": _rms(err[1:].ravel()), "heading_rmse_rad": _rms(head[1:].ravel()),
             "nees": _average_with_bounds(ne, dof),
             "nis": _average_with_bounds(np.array([v for *_, v, _ in nis]), np.array([d for *_, d in nis], np.int64)),
         }

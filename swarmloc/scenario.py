@@ -7,6 +7,7 @@ never silently falls back to a default.
 
 from __future__ import annotations
 
+import functools
 import math
 from importlib import resources
 from pathlib import Path
@@ -169,6 +170,9 @@ class World(_Strict):
                              "directory, or absolute)")
     robots: list[int] | None = Field(None, description="mrclam: the recorded robots to replay as agents; null: all")
     offset: float = Field(0.0, ge=0, description="mrclam: seconds into the recording at which the run starts")
+    odometry_lag: float | None = Field(None, description="mrclam: seconds by which the recorded odometry leads the "
+                                       "motion it causes; null: estimated per robot from the recording (0.22-0.25 s "
+                                       "on Dataset6)")
     agents: list[AgentSpec] = Field(min_length=1)
     landmarks: list[LandmarkSpec] = Field(default_factory=list, description="the landmark map: known to the "
                                           "estimators, observed by range and bearing (`sensors.range_bearing`)")
@@ -191,8 +195,14 @@ class World(_Strict):
             raise ValueError(f"landmark ids must be unique, got {lm}")
         if self.source == "mrclam" and not self.path:
             raise ValueError("source mrclam needs `path`, the dataset directory")
-        if self.source == "simulated" and (self.path is not None or self.robots is not None or self.offset):
-            raise ValueError("path, robots and offset are for a recorded source (source: mrclam)")
+        if self.source == "mrclam" and self.robots is not None:
+            ids = sorted(a.id for a in self.agents)
+            if ids != sorted(self.robots) or any(a.model != "planar-pose" for a in self.agents):
+                raise ValueError(f"a replay's agents are its robots {sorted(self.robots)}, each planar-pose; got "
+                                 f"{[(a.id, a.model) for a in self.agents]}")
+        if self.source == "simulated" and (self.path is not None or self.robots is not None or self.offset
+                                           or self.odometry_lag is not None):
+            raise ValueError("path, robots, offset and odometry_lag are for a recorded source (source: mrclam)")
         ids = [t.id for t in self.targets]
         if len(set(ids)) != len(ids):
             raise ValueError(f"target ids must be unique, got {ids}")
@@ -501,9 +511,64 @@ class Scenario(_Strict):
         return yaml.safe_dump(plain(self.model_dump(exclude_none=False)), sort_keys=False)
 
 
-def parse(data, source: str = "<scenario>") -> Scenario:
+@functools.lru_cache(maxsize=4)
+def recording(path: str):
+    """A loaded MR.CLAM directory (cached: the launcher, netsim and the references all read it)."""
+    from swarmloc import mrclam
+
+    return mrclam.load(path)
+
+
+def _expand_recorded(data: dict, base: Path | None) -> dict:
+    """A world with `source: mrclam`: the path made absolute, and what the scenario leaves out
+    taken from the recording: the agents (every recorded robot, planar-pose, starting at its
+    Vicon pose at the run's start), the landmark map and the duration (to the recording's end)."""
+    from swarmloc import mrclam
+
+    world = data.get("world")
+    if not isinstance(world, dict) or world.get("source") != "mrclam" or not isinstance(world.get("path"), str):
+        return data
+    path = Path(world["path"]).expanduser()
+    if not path.is_absolute() and base is not None:
+        path = base / path
+    try:
+        rec = recording(str(path.resolve()))
+    except mrclam.MrclamError as exc:
+        raise ScenarioError(f"world.path: {exc}") from None
+    world = {**world, "path": str(path.resolve()), "robots": world.get("robots") or list(rec.robots)}
+    robots = world.get("robots") or list(rec.robots)
+    if not isinstance(robots, list) or set(robots) - set(rec.robots):
+        raise ScenarioError(f"world.robots: the recording has robots {list(rec.robots)}, got {robots!r}")
+    offset = world.get("offset", 0.0)
+    offset = offset if isinstance(offset, (int, float)) else 0.0
+    if "agents" not in world:
+        agents = []
+        for r in robots:
+            g = rec.groundtruth[r]
+            # The Vicon pose at the start; a robot not yet tracked then starts at its first pose.
+            pose = rec.truth_at(r, rec.t0 + offset)
+            if not np.isfinite(pose).all():
+                i = min(int(np.searchsorted(g.t, rec.t0 + offset)), len(g) - 1)
+                pose = np.array([g.x[i], g.y[i], g.heading[i]])
+            agents.append({"id": r, "model": "planar-pose", "start": [float(pose[0]), float(pose[1])],
+                           "heading": float(pose[2])})
+        world["agents"] = agents
+    world.setdefault("landmarks", [{"id": s, "position": list(m.xy)} for s, m in sorted(rec.landmarks.items())])
+    clock = dict(data.get("clock") or {})
+    dt = clock.get("dt", Clock.model_fields["dt"].default)
+    if "duration" not in clock and isinstance(dt, (int, float)) and dt > 0:
+        clock["duration"] = math.floor((rec.duration - offset) / dt + 1e-9) * dt
+    return {**data, "world": world, "clock": clock}
+
+
+def parse(data, source: str = "<scenario>", base: Path | None = None) -> Scenario:
+    """A validated scenario; `base`: the directory relative paths in it are taken from."""
     if not isinstance(data, dict):
         raise ScenarioError(f"{source}: a scenario is a YAML mapping, got {type(data).__name__}")
+    try:
+        data = _expand_recorded(data, base)
+    except ScenarioError as exc:
+        raise ScenarioError(f"{source}: invalid scenario\n  {exc}") from None
     try:
         return Scenario.model_validate(data)
     except ValidationError as exc:
@@ -521,11 +586,12 @@ def builtin_names() -> list[str]:
 def load(name_or_path: str | Path) -> Scenario:
     """A built-in scenario by name, or a YAML file by path."""
     text: str
+    base = None
     p = Path(name_or_path)
     if p.suffix in (".yaml", ".yml") or p.exists():
         if not p.is_file():
             raise ScenarioError(f"{p}: no such scenario file")
-        text, source = p.read_text(), str(p)
+        text, source, base = p.read_text(), str(p), p.resolve().parent
     elif str(name_or_path) in builtin_names():
         text = resources.files("swarmloc.scenarios").joinpath(f"{name_or_path}.yaml").read_text()
         source = f"built-in {name_or_path}"
@@ -535,4 +601,4 @@ def load(name_or_path: str | Path) -> Scenario:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise ScenarioError(f"{source}: not valid YAML: {exc}") from None
-    return parse(data, source)
+    return parse(data, source, base)
