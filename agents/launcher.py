@@ -402,6 +402,28 @@ def target_table(m: dict, algs: list[str]) -> Table:
     return t
 
 
+def pose_table(m: dict, algs: list[str]) -> Table:
+    """Per agent and estimator: position RMSE (m), heading RMSE (rad) and average NEES, for a
+    swarm whose states carry a heading (a replay's robots)."""
+    t = Table(title="RMSE of position (m) / heading (rad), and NEES (3 dof when consistent)")
+    t.add_column("estimator")
+    for aid in m["agents"]:
+        t.add_column(f"A{aid}", justify="right")
+    t.add_column("all", justify="right")
+
+    def cell(e):
+        nees = e.get("nees")
+        parts = [f"{e['rmse_m']:.3f}" if e.get("rmse_m") is not None else "-",
+                 f"{e['heading_rmse_rad']:.3f}" if e.get("heading_rmse_rad") is not None else "-",
+                 f"{nees['mean']:.1f}" if nees else "-"]
+        return "/".join(parts)
+
+    for a in algs:
+        e = m["estimators"][a]
+        t.add_row(a, *(cell(e["agents"][str(aid)]) for aid in m["agents"]), cell(e))
+    return t
+
+
 def print_summary(out: Path, crashes: list[Crash]) -> None:
     m = json.loads((out / "metrics.json").read_text())
     algs = REGISTRY.order(m["estimators"])
@@ -423,6 +445,8 @@ def print_summary(out: Path, crashes: list[Crash]) -> None:
     t.add_row("all", *sum(([fmt(m["estimators"][a]["mean_error_m"]), ""] for a in algs), []), style="bold")
     console.print(t)
     console.print(consistency_table(m, algs))
+    if any(m["estimators"][a].get("heading_rmse_rad") is not None for a in algs):
+        console.print(pose_table(m, algs))
     if any("targets" in m["estimators"][a] for a in algs):
         console.print(target_table(m, algs))
     r = m.get("radio", {})

@@ -23,8 +23,10 @@ def _style(alg: str) -> tuple[str, str]:
 
 
 def plot_run(out: Path, record, algorithms: list[str]) -> list[Path]:
-    """plots/trajectories.png (east-north), plots/position_error.png and plots/nees.png."""
-    from swarmloc.results import nees_series, position_errors
+    """plots/trajectories.png (east-north; a panel per agent over the landmark map when the
+    record has one), plots/position_error.png, plots/heading_error.png (models with a heading)
+    and plots/nees.png."""
+    from swarmloc.results import heading_errors, nees_series, position_errors
 
     out = Path(out) / "plots"
     out.mkdir(parents=True, exist_ok=True)
@@ -33,25 +35,47 @@ def plot_run(out: Path, record, algorithms: list[str]) -> list[Path]:
     traces = {a: record.trace(a) for a in algorithms}
     paths = []
 
-    fig, ax = plt.subplots(figsize=(7, 7))
-    for ci, aid in enumerate(record.ids):
-        ax.plot(truth[:, ci, 0], truth[:, ci, 1], "k-", lw=1.5, label="truth" if ci == 0 else None)
-        ax.plot(*truth[0, ci, :2], "ko")
-        ax.annotate(f"A{aid}", truth[0, ci, :2], textcoords="offset points", xytext=(5, 5))
-        for alg, tr in traces.items():
-            color, label = _style(alg)
-            ax.plot(tr.mean[:, ci, 0], tr.mean[:, ci, 1], color=color, lw=0.8, label=label if ci == 0 else None)
-    ax.set_xlabel("x, east (m)")
-    ax.set_ylabel("y, north (m)")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.legend(loc="best")
-    ax.set_title("Trajectories: truth and estimates")
+    landmarks = getattr(record, "landmarks", {}) or {}
+    # With a landmark map (a replay) the robots criss-cross one arena: a panel per robot.
+    panels = record.ids if landmarks else [None]
+    cols = min(len(panels), 3)
+    rows = -(-len(panels) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(7 if cols == 1 else 5 * cols, 7 if rows == 1 and cols == 1 else 4.2 * rows),
+                             squeeze=False)
+    for pi, (ax, which) in enumerate(zip(axes.flat, panels)):
+        for ci, aid in enumerate(record.ids):
+            if which is not None and aid != which:
+                continue
+            first = ci == 0 or which is not None
+            ax.plot(truth[:, ci, 0], truth[:, ci, 1], "k-", lw=1.5, label="truth (Vicon)" if landmarks and first
+                    else "truth" if first else None)
+            ax.plot(*truth[0, ci, :2], "ko")
+            ax.annotate(f"A{aid}", truth[0, ci, :2], textcoords="offset points", xytext=(5, 5))
+            for alg, tr in traces.items():
+                color, label = _style(alg)
+                ax.plot(tr.mean[:, ci, 0], tr.mean[:, ci, 1], color=color, lw=0.8, label=label if first else None)
+        if landmarks:
+            xy = np.array(list(landmarks.values()))
+            ax.plot(xy[:, 0], xy[:, 1], "k^", ms=5, label="landmarks")
+            ax.set_title(f"A{which}")
+        ax.set_xlabel("x, east (m)")
+        ax.set_ylabel("y, north (m)")
+        ax.set_aspect("equal", adjustable="datalim")
+        if pi == 0:
+            ax.legend(loc="best", fontsize="small")
+    for ax in axes.flat[len(panels):]:
+        ax.axis("off")
+    if not landmarks:
+        axes[0, 0].set_title("Trajectories: truth and estimates")
     paths.append(out / "trajectories.png")
     fig.savefig(paths[-1], dpi=DPI, bbox_inches="tight")
     plt.close(fig)
 
     errors = {alg: position_errors(record, tr) for alg, tr in traces.items()}
     paths.append(_per_agent(out / "position_error.png", record, t, errors, "position error (m)"))
+    if any(len(record.models[a].layout.att_idx) == 1 for a in record.ids):
+        heading = {alg: heading_errors(record, tr) for alg, tr in traces.items()}
+        paths.append(_per_agent(out / "heading_error.png", record, t, heading, "heading error (rad)"))
     nees = {alg: nees_series(record, tr) for alg, tr in traces.items()}
     paths.append(_per_agent(out / "nees.png", record, t, nees, "NEES", log=True, bounds=True))
     with_targets = {a: tr for a, tr in traces.items() if tr.target_ids is not None}

@@ -77,6 +77,7 @@ class RunRecord:
         self.sensors: list[dict[int, Sensors]] = []
         self.target_ids: list[int] = []
         self.target_truth: list[np.ndarray] = []  # per tick (M, 2)
+        self.landmarks: dict[int, tuple[float, float]] = {}  # the known map, for plots
         self.est: dict[str, dict[int, dict[int, Estimate]]] = {}
         # alg -> {(k, agent): [(nis, dof), ...]}: an agent may publish its estimate of a tick more
         # than once (a fusion-centre UAS: its own, then the centre's); the last one counts.
@@ -84,7 +85,9 @@ class RunRecord:
 
     @classmethod
     def for_scenario(cls, scenario) -> "RunRecord":
-        return cls(scenario.localized_ids, {a: scenario.agent(a).model for a in scenario.localized_ids})
+        record = cls(scenario.localized_ids, {a: scenario.agent(a).model for a in scenario.localized_ids})
+        record.landmarks = {m.id: tuple(m.position) for m in scenario.world.landmarks}
+        return record
 
     def add_tick(self, k: int, t: float, frames: dict[int, Sensors], truth: dict[int, np.ndarray],
                  targets: dict[int, np.ndarray] | None = None) -> None:

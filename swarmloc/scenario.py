@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import math
+import re
 from importlib import resources
 from pathlib import Path
 from typing import Annotated, Literal, Union
@@ -526,8 +527,10 @@ def _expand_recorded(data: dict, base: Path | None) -> dict:
     from swarmloc import mrclam
 
     world = data.get("world")
-    if not isinstance(world, dict) or world.get("source") != "mrclam" or not isinstance(world.get("path"), str):
+    if not isinstance(world, dict) or world.get("source") != "mrclam":
         return data
+    if not isinstance(world.get("path"), str):
+        raise ScenarioError("world.path: source mrclam needs `path`, the dataset directory")
     path = Path(world["path"]).expanduser()
     if not path.is_absolute() and base is not None:
         path = base / path
@@ -559,6 +562,42 @@ def _expand_recorded(data: dict, base: Path | None) -> dict:
     if "duration" not in clock and isinstance(dt, (int, float)) and dt > 0:
         clock["duration"] = math.floor((rec.duration - offset) / dt + 1e-9) * dt
     return {**data, "world": world, "clock": clock}
+
+
+REPLAY_REFERENCES = ("il", "ekf", "ekf-ccl", "ukf-ccl")
+
+
+def replay_scenario(path, *, estimator: str = "ukf-dcl", dt: float = 0.1, duration: float | None = None,
+                    offset: float = 0.0, robots: list[int] | None = None, landmarks: bool = True,
+                    observations: bool = True, gate: float | None = 0.999, mode: str = "lockstep",
+                    speed: float = 1.0, seed: int = 0, noise=None) -> Scenario:
+    """The scenario `swarmloc replay` runs: the recording at `path` replayed at ticks of dt, its
+    sensor noise fitted against its Vicon truth (swarmloc.mrclam.fit_noise) unless `noise` (a
+    NoiseFit) is given, the agents running `estimator` and the offline references beside it."""
+    from swarmloc import mrclam
+    from swarmloc.estimators import REGISTRY
+
+    p = Path(path).expanduser().resolve()
+    try:
+        rec = recording(str(p))
+    except mrclam.MrclamError as exc:
+        raise ScenarioError(str(exc)) from None
+    noise = noise or mrclam.fit_noise(rec, dt)
+    clock = {"mode": mode, "dt": dt, "speed": speed, **({"duration": duration} if duration is not None else {})}
+    world = {"source": "mrclam", "path": str(p), "offset": offset, **({"robots": robots} if robots else {})}
+    data = {
+        "version": SCENARIO_VERSION, "name": re.sub(r"[^A-Za-z0-9_.-]", "_", f"replay-{p.name}"),
+        "description": f"MR.CLAM recording {p.name} replayed (Leung et al., IJRR 2011)", "seed": seed,
+        "clock": clock, "world": world,
+        "sensors": {"odometry": {"speed_noise": noise.speed, "turn_rate_noise": noise.turn_rate},
+                    "range_bearing": {"robots": observations, "landmarks": landmarks, "range_noise": noise.range,
+                                      "bearing_noise": noise.bearing}},
+        "radio": {"model": "unit-disk", "range_m": math.inf},
+        "estimation": {"initial_std": 0.02, "initial_heading_std": 0.02, "gate": gate},
+        "estimator": {"name": estimator},
+        "references": [r for r in REPLAY_REFERENCES if r != estimator and "planar-pose" in REGISTRY[r].models],
+    }
+    return parse(data, f"replay of {p}")
 
 
 def parse(data, source: str = "<scenario>", base: Path | None = None) -> Scenario:

@@ -1,0 +1,129 @@
+"""Replaying an MR.CLAM recording (Leung et al., IJRR 2011) as netsim's world: ticks, truth,
+the scenario's `world.source: mrclam`, `swarmloc replay`, another dataset directory."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import mrclam_synth
+from netsim.replay import ReplayWorld
+from netsim.sim import Simulation
+from swarmloc import mrclam, scenario
+from swarmloc.runner import InProcessRunner, make_nodes
+
+ROOT = Path(__file__).resolve().parents[1]
+FULL = ROOT.parent / "shared" / "data" / "mrclam" / "MRCLAM_Dataset6"
+needs_full = pytest.mark.skipif(not FULL.is_dir(), reason="the shared MR.CLAM Dataset6 is not beside the repository")
+
+
+@pytest.fixture(scope="module")
+def synth(tmp_path_factory):
+    return mrclam_synth.write(tmp_path_factory.mktemp("synth") / "MRCLAM_Synthetic", seed=4)
+
+
+def test_ticks_integrate_the_commands_and_carry_bearings_to_the_tick(synth):
+    rec = mrclam.load(synth)
+    dt, steps = 0.1, 500
+    tk = mrclam.ticked(rec, 1, rec.t0, dt, steps, lag=0.2)
+    o = rec.odometry_shifted(1, 0.2)
+    # The ticks' mean commands integrate to the commands' integral over the same span.
+    end = rec.t0 + dt * steps
+    sel = (o.t >= o.t[0]) & (o.t < end)
+    held = np.diff(np.r_[o.t[sel], end])
+    assert dt * tk.v.sum() == pytest.approx(np.sum(o.v[sel] * held), rel=1e-9)
+    assert dt * tk.w.sum() == pytest.approx(np.sum(o.w[sel] * held), rel=1e-9)
+    # Every measurement lands in the tick whose interval (t_{k-1}, t_k] holds it.
+    m = rec.measurements[1]
+    inside = (m.t > rec.t0) & (m.t <= end)
+    assert tk.tick.size == inside.sum()
+    k_of = np.ceil((m.t[inside] - rec.t0) / dt - 1e-9)
+    assert np.array_equal(tk.tick, k_of)
+    # Carried to the tick, a bearing is closer to the truth there than the raw bearing.
+    fit = mrclam.fit_noise(rec, dt)
+    assert fit.bearing == pytest.approx(0.01, rel=0.25)
+    assert fit.range == pytest.approx(0.05, rel=0.25)
+
+
+def test_a_replay_scenario_takes_robots_landmarks_and_duration_from_the_recording(synth):
+    sc = scenario.parse({"version": 1, "name": "r", "clock": {"dt": 0.1},
+                         "world": {"source": "mrclam", "path": str(synth)}, "estimator": {"name": "il"}, "references": []})
+    rec = mrclam.load(synth)
+    assert sc.agent_ids == [1, 2, 3] and all(a.model == "planar-pose" for a in sc.world.agents)
+    assert [m.id for m in sc.world.landmarks] == sorted(rec.landmarks)
+    assert sc.clock.duration == pytest.approx(np.floor(rec.duration / 0.1) * 0.1)
+    start = rec.truth_at(2, rec.t0)
+    assert sc.agent(2).start == pytest.approx(start[:2]) and sc.agent(2).heading == pytest.approx(start[2])
+
+
+@pytest.mark.parametrize("world, field", [
+    ({"source": "mrclam", "path": "/no/such/dir"}, "world.path"),
+    ({"source": "mrclam", "path": "SYNTH", "robots": [1, 9]}, "world.robots"),
+    ({"source": "mrclam"}, "needs `path`"),
+    ({"source": "mrclam", "path": "SYNTH", "agents": [{"id": 1, "model": "planar-pose", "start": [0, 0]}], "robots": [1, 2]},
+     "a replay's agents are its robots"),
+    ({"path": "SYNTH", "agents": [{"id": 1, "start": [0, 0]}]}, "for a recorded source"),
+])
+def test_bad_replay_scenarios_name_the_field(synth, world, field):
+    world = {k: (str(synth) if v == "SYNTH" else v) for k, v in world.items()}
+    with pytest.raises(scenario.ScenarioError, match=field):
+        scenario.parse({"version": 1, "name": "r", "world": world, "estimator": {"name": "il"}})
+
+
+def test_relative_paths_are_taken_from_the_scenario_file(synth, tmp_path):
+    f = synth.parent / "replay.yaml"
+    f.write_text(f"version: 1\nname: r\nclock: {{dt: 0.2}}\nworld: {{source: mrclam, path: {synth.name}}}\n"
+                 "estimator: {name: il}\nreferences: []\n")
+    assert scenario.load(f).world.path == str(synth.resolve())
+
+
+def test_the_replay_world_delivers_the_recording(synth):
+    sc = scenario.replay_scenario(synth, estimator="il", dt=0.1, gate=None)
+    world = ReplayWorld(sc)
+    rec = mrclam.load(synth)
+    frames = [world.step() for _ in range(sc.clock.steps + 1)]
+    assert [f[1].k for f in frames] == list(range(sc.clock.steps + 1))
+    seen = {r: sum(len(f[r].rb) + len(f[r].landmarks) for f in frames) for r in sc.agent_ids}
+    kept = {r: int(((rec.measurements[r].t > rec.t0) & (rec.measurements[r].t <= rec.t0 + sc.clock.duration + 1e-9)).sum())
+            for r in sc.agent_ids}
+    assert seen == kept
+    # Robot observations name robots, landmark observations landmarks, with the scenario's noise.
+    ids, marks = set(sc.agent_ids), {m.id for m in sc.world.landmarks}
+    for f in frames:
+        for r, s in f.items():
+            assert {m.target for m in s.rb} <= ids - {r} and {m.target for m in s.landmarks} <= marks
+            assert all(m.range_std == sc.sensors.range_bearing.range_noise for m in s.rb + s.landmarks)
+            assert s.odometry.turn_rate_std == sc.sensors.odometry.turn_rate_noise
+
+
+def test_truth_is_nan_in_a_vicon_gap_and_the_radio_keeps_the_last_position(synth):
+    sc = scenario.replay_scenario(synth, estimator="il", dt=0.1, gate=None)
+    world = ReplayWorld(sc)
+    gap = []
+    for k in range(sc.clock.steps + 1):
+        world.step()
+        if np.isnan(world.states()[3]).any():
+            gap.append((k, world.positions()[3]))
+    ks = [k for k, _ in gap]
+    assert 8 <= len(ks) <= 15 and ks[0] * 0.1 == pytest.approx(20.5, abs=0.6)  # the synthetic 1.5 s gap at 20 s
+    frozen = [p for _, p in gap]
+    assert all(np.array_equal(p, frozen[0]) for p in frozen) and np.isfinite(frozen[0]).all()
+
+
+def test_metrics_skip_ticks_without_truth(synth):
+    sc = scenario.replay_scenario(synth, estimator="il", dt=0.1, gate=None)
+    record = InProcessRunner(Simulation(sc), make_nodes("il", sc)).run()
+    from swarmloc.results import metrics
+
+    m = metrics(record, ["il"])["estimators"]["il"]
+    assert m["agents"]["3"]["ticks_missing"] >= 8 and m["agents"]["1"]["ticks_missing"] == 0
+    assert all(m["agents"][str(a)]["rmse_m"] is not None and m["agents"][str(a)]["heading_rmse_rad"] is not None
+               for a in sc.agent_ids)
+
+
+def test_replay_cli_errors_are_one_line(cli, tmp_path):
+    p = cli.run("replay", str(tmp_path / "nothing"))
+    assert p.returncode == 2 and p.stderr.startswith("error:") and "no such directory" in p.stderr
+    assert len(p.stderr.strip().splitlines()) == 1
+    p = cli.run("replay", str(tmp_path), "--dt", "0")
+    assert p.returncode == 2 and "--dt" in p.stderr
