@@ -19,8 +19,9 @@ Vec = Annotated[np.ndarray, Array(1)]
 Mat = Annotated[np.ndarray, Array(2)]
 SqMat = Annotated[np.ndarray, Array(2, square=True)]
 Blocks = Annotated[dict, MapOf(Int(0, MAX_ID), Array(2))]
-# A chain key: (measurer, measured, index within the tick); chains run in this order.
-ChainKey = ListOf(Int(0, MAX_ID), length=3)
+# A chain key: (measurer, kind, target, index within the tick), swarmloc.node.keyed_measurements;
+# chains run in this order.
+ChainKey = ListOf(Int(0, MAX_ID), length=4)
 
 
 # --------------------------------------------------------------------------- environment -> agent
@@ -235,6 +236,7 @@ class DclStart:
     version: Version
     orphan: Annotated[bool, Bool()]
     pending: Annotated[list, ListOf(ChainKey)]
+    phi: Blocks = field(default_factory=dict)  # F != I: {m: Phi_m}, m's transition product (core coordinates)
 
 
 @message("dcl.token")
@@ -262,6 +264,7 @@ class DclToken:
     versions: Annotated[dict, MapOf(Int(0, MAX_ID), VersionMap)]
     orphans: IdList
     pending: Annotated[list, ListOf(ChainKey)]
+    phi: Blocks = field(default_factory=dict)  # F != I: Phi of m and n when n formed the gains
 
 
 @message("dcl.commit")
@@ -294,6 +297,7 @@ class DclCommit:
     removed: Annotated[list, ListOf(ListOf(Int(0, MAX_ID), length=2))]
     finished: Annotated[bool, Bool()]
     pending: Annotated[list, ListOf(ChainKey)]
+    phi: Blocks = field(default_factory=dict)  # the token's: outsiders form their core gain with it
 
 
 @message("dcl.sync")

@@ -120,15 +120,23 @@ def estimate_of(node) -> Estimate:
     return dataclasses.replace(e, nis=nis) if nis else e
 
 
-def keyed_ranges(measurer: int, sensors: Sensors):
-    """(key, range) for each range of a sensor frame, key = (measurer, measured, q), q counting
-    earlier ranges of the frame to the same platform. A tick's measurements apply in key order,
-    in a distributed chain and in the centralized reference alike: updates do not commute."""
-    counts: dict[int, int] = {}
-    for r in sensors.ranges:
-        q = counts.get(r.target, 0)
-        counts[r.target] = q + 1
-        yield (measurer, r.target, q), r
+# Kinds of relative measurement, in the order a measurer's measurements of one tick apply.
+RANGE, RANGE_BEARING, LANDMARK = 0, 1, 2
+
+
+def keyed_measurements(measurer: int, sensors: Sensors):
+    """(key, message) for each relative measurement of a sensor frame, key = (measurer, kind,
+    target, q): kind RANGE (sensors.ranges), RANGE_BEARING (sensors.rb, target an agent) or
+    LANDMARK (sensors.landmarks, target a landmark id), q counting earlier measurements of the
+    frame of the same kind and target. A tick's measurements apply in key order, in a
+    distributed chain and in the centralized reference alike: updates do not commute. Among
+    ranges this is the (measurer, measured, q) order of a swarm that only ranges."""
+    for kind, items in ((RANGE, sensors.ranges), (RANGE_BEARING, sensors.rb), (LANDMARK, sensors.landmarks)):
+        counts: dict[int, int] = {}
+        for r in items:
+            q = counts.get(r.target, 0)
+            counts[r.target] = q + 1
+            yield (measurer, kind, r.target, q), r
 
 
 def odometry_of(s: Sensors) -> Odometry:

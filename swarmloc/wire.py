@@ -24,7 +24,7 @@ from typing import Any, ClassVar
 import msgpack
 import numpy as np
 
-SCHEMA_VERSION = 4  # 2: UAS sensor fields, clock speed, estimate NIS, fusion-centre payloads; 3: targets, turn rate, CSL-CTL payloads; 4: range-bearing to agents and landmarks
+SCHEMA_VERSION = 4  # 2: UAS sensor fields, clock speed, estimate NIS, fusion-centre payloads; 3: targets, turn rate, CSL-CTL payloads; 4: range-bearing to agents and landmarks, 4-part chain keys, core-coordinate transitions (phi) in UKF-DCL chains
 MAX_FRAME_BYTES = 64 * 1024  # a message type's frame limit unless it declares its own (@message max_bytes)
 # The hard ceiling: the largest frame limit any type may declare. Checked on the raw payload
 # before parsing (and by `bounded`), because a frame's type is known only once it is parsed.

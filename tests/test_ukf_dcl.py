@@ -219,7 +219,7 @@ def test_malformed_but_decodable_chain_frames_are_dropped():
     cap.ticks(3)
     node = cap.nodes[2]
     x = node.x.copy()
-    key = [1, 2, 0]
+    key = [1, 0, 2, 0]
     def token(**over):
         f = dict(k=node.k, epoch=node.epoch, key=key, status=0, L=np.eye(4), Y=np.ones((4, 1)), Pz=np.eye(1),
                  nu=np.zeros(1), order=[1], parent={}, gains={1: np.zeros((2, 1))}, versions={1: {}}, orphans=[],

@@ -12,9 +12,9 @@ from swarmloc.messages import (Beacon, DclCommit, DclLog, DclToken, Done, Estima
 
 
 def token(**over):
-    fields = dict(k=3, epoch=0, key=[1, 2, 0], status=0, L=np.eye(4), Y=np.ones((4, 1)), Pz=np.eye(1), nu=np.zeros(1),
+    fields = dict(k=3, epoch=0, key=[1, 0, 2, 0], status=0, L=np.eye(4), Y=np.ones((4, 1)), Pz=np.eye(1), nu=np.zeros(1),
                   order=[1, 2], parent={2: 1}, gains={1: np.zeros((2, 1))}, versions={1: {1: 4, 2: 3}, 2: {1: 4, 2: 3}},
-                  orphans=[], pending=[[1, 2, 0]])
+                  orphans=[], pending=[[1, 0, 2, 0]])
     fields.update(over)
     return DclToken(**fields)
 
@@ -36,7 +36,7 @@ def test_nested_messages_round_trip():
 
 def test_commit_log_round_trips_with_versions():
     t = token()
-    commit = DclCommit(3, 0, [1, 2, 0], 5, {1: 4, 2: 3}, t.L, t.Y, t.Pz, t.nu, {2: 1}, t.gains, [1], [], True, [])
+    commit = DclCommit(3, 0, [1, 0, 2, 0], 5, {1: 4, 2: 3}, t.L, t.Y, t.Pz, t.nu, {2: 1}, t.gains, [1], [], True, [])
     body = wire.decode(wire.encode(DclLog(9, [commit, commit]), 2, 1, 1)).body
     assert len(body.commits) == 2 and body.commits[1].version == {1: 4, 2: 3} and body.commits[0].seq == 5
     assert np.array_equal(body.commits[0].gains[1], t.gains[1])

@@ -29,7 +29,14 @@ was run, with no inflation. Orphans, nodes that lost their cross-covariances (re
 checkpoint, a commit they took part in but can no longer apply), are removed from the others'
 rows with a covariance-intersection bound when a chain meets them.
 
-Several measurements in one tick run as successive chains in key order (m, n, q). Every
+Measurements: ranges, range-bearing to another agent and to a landmark of the map (which
+involves m alone: m is its own n, and starts its token itself), optionally through a
+chi-square gate that m applies before committing. With F != I (planar-pose) rows are kept in
+core coordinates, C_ij = Phi_i^-1 P_ij Phi_j^-T with Phi_i the product of i's transition
+Jacobians, which time updates leave alone; gains travel as core gains and each node applies
+its own Phi (docs/ukf-dcl.md, "F != I").
+
+Several measurements in one tick run as successive chains in key order (m, kind, target, q). Every
 measurer starts its chain at once; a node drops any token whose key is larger than one of its
 own pending keys, so only the smallest chain of a connected part can complete. Its token
 gathers every pending key it meets; after the commit the owner of the next key starts the next
@@ -50,11 +57,11 @@ from swarmloc.messages import (CHAIN_OK, CHAIN_REFUSED, CHAIN_UNREACHABLE, CHAIN
                                DclStart, DclSync, DclToken, Sensors)
 from swarmloc.estimators.neighbours import NeighbourTable, RetryBudget
 from swarmloc.estimators.rejoin import Multilateration
-from swarmloc.models import Range
-from swarmloc.node import Estimate, Node, NodeSpec, Send, keyed_ranges, odometry_of
+from swarmloc.estimators.ukf_ccl import Observations
+from swarmloc.node import LANDMARK, RANGE, RANGE_BEARING, Estimate, Node, NodeSpec, Send, keyed_measurements, odometry_of
 
 log = logging.getLogger(__name__)
-Key = tuple[int, int, int]
+Key = tuple[int, int, int, int]
 NEIGHBOUR_TICKS = 3
 VERSION_RETRIES = 2  # chain reruns when m and n are at different versions
 LOG_COMMITS = 2048  # applied commits kept to replay to nodes that missed them
@@ -73,27 +80,38 @@ class UkfDclNode(Node):
         est = scenario.estimation
         x0, P0 = scenario.prior(aid)
         return NodeSpec.of(cls, aid=aid, x0=x0, P0=P0, model=scenario.agent(aid).model, spread=est.spread,
-                           rejoin_std=est.rejoin_std, max_chain=getattr(settings, "max_chain", None))
+                           rejoin_std=est.rejoin_std, max_chain=getattr(settings, "max_chain", None),
+                           landmarks=[[m.id, *m.position] for m in scenario.world.landmarks], gate=est.gate,
+                           gate_open_after=est.gate_open_after)
 
     def __init__(self, aid, x0, P0, model="planar-speed-heading", spread: float | None = None, max_retries: int = 3,
-                 rejoin_std: float | None = 15.0, max_chain: int | None = None):
+                 rejoin_std: float | None = 15.0, max_chain: int | None = None, landmarks=(), gate: float | None = None,
+                 gate_open_after: int = 10):
         super().__init__(aid, x0, P0, model)
+        d = self.model.state_dim
+        # F != I: the product of our transition Jacobians, the basis of our cross-covariance
+        # rows (core coordinates, docs/ukf-dcl.md). None when F = I: rows are real covariances.
+        self.phi: np.ndarray | None = None if self.model.identity_transition else np.eye(d)
         # Bounded chains ("local" mode): a chain stops exploring after max_chain platforms and
         # chains run concurrently; a platform gives its version to one chain at a time (the
         # `reported` lock) and is an outsider to every other. `epoch` then numbers the
         # measurer's own chains instead of the commits of the tick.
         self.max_chain = max_chain
         self.bounded = max_chain is not None
-        self.rejoin_std = rejoin_std
+        # Finding oneself again by multilateration is for F = I only (docs/ukf-dcl.md, "F != I").
+        self.rejoin_std = rejoin_std if self.phi is None else None
         self.lost = False  # position too uncertain to linearize a range at: finding itself (rejoin.py)
         self.finder = Multilateration(self.model.position_dim)
         self.lost_ranges: list[tuple[int, int, float, float]] = []  # own ranges while lost: (k, target, r, var)
         self.max_retries = max_retries
         self.retries = RetryBudget()  # keyed (message type, dst, k, epoch)
         self.ut = kalman.UnscentedTransform.for_pair(self.model.state_dim, spread)
-        self.meas = Range(self.model)
-        self._upper = np.triu_indices(2 * self.model.state_dim, 1)  # must be zero in a Cholesky factor
-        self._zero = np.zeros((self.model.state_dim,) * 2)  # an absent block; never written to
+        self.obs = Observations(self.model, {int(i): (x, y) for i, x, y in landmarks})
+        # The measurer gates the measurements it commits; each key is always its own, so its
+        # gate sees the NIS sequence the centralized filter's does.
+        self.gate = kalman.Gate(gate, gate_open_after)
+        self._upper = {n * d: np.triu_indices(n * d, 1) for n in (1, 2)}  # must be zero in a Cholesky factor
+        self._zero = np.zeros((d, d))  # an absent block; never written to
         self.row: dict[int, np.ndarray] = {self.id: self.P}
         del self.P  # the own block lives in self.row; one copy only
         self.version: dict[int, int] = {}  # measurer -> its state-changing commits applied here
@@ -120,7 +138,7 @@ class UkfDclNode(Node):
         self.nis: list[tuple[float, int]] = []  # (NIS, dof) of the measurements this node committed this tick
         self.stats = {"chains_committed": 0, "measurements_used": 0, "measurements_dropped": 0,
                       "outsider_commits": 0, "commits_replayed": 0, "orphaned": 0, "orphans_removed": 0,
-                      "lost": 0, "refound": 0, "refused_holding": 0, "holds_expired": 0}
+                      "lost": 0, "refound": 0, "refused_holding": 0, "holds_expired": 0, "measurements_gated": 0}
 
     # ------------------------------------------------------------------ state
 
@@ -135,6 +153,8 @@ class UkfDclNode(Node):
         self.row = {self.id: np.array(P, float)}
         self.version, self.waiting, self.reported = {}, {}, None
         self.orphan, self.orphan_base = True, self.row[self.id].copy()
+        if self.phi is not None:
+            self.phi = np.eye(self.model.state_dim)  # no row refers to our old basis once we are removed
         self.lost = False  # decided again at the first tick, after the missed ticks' inflation
         self.finder.clear()
         self.lost_ranges.clear()
@@ -148,8 +168,6 @@ class UkfDclNode(Node):
     def step(self, sensors: Sensors) -> list[Send]:
         if sensors.k <= self.k:
             return self.drop("stale-tick", f"sensors k={sensors.k} at k={self.k}")
-        if not self.model.identity_transition:
-            raise NotImplementedError("UKF-DCL here needs F = I (cross-covariances kept by prediction)")
         self.stats["measurements_dropped"] += len(self.pending)  # chains that never finished
         gap = self.missed_motion(sensors)
         if gap is not None:
@@ -167,11 +185,18 @@ class UkfDclNode(Node):
         self.asked.clear()
         self.seen = {f for f in self.seen if f[2] >= self.k}
         # F = I: prediction leaves every cross-covariance as it is, so it commutes with commits
-        # applied late (their outsider part reads only cross-covariances).
-        x, _, Q = self.model.predict(self.x, odometry_of(sensors))
+        # applied late (their outsider part reads only cross-covariances). F != I: so do the
+        # core rows; only the own block and Phi move.
+        x, F, Q = self.model.predict(self.x, odometry_of(sensors))
         moved = self.model.position(x) - self.model.position(self.x)
         self.x = x
-        self.row[self.id] = self.row[self.id] + Q
+        if self.phi is None:
+            self.row[self.id] = self.row[self.id] + Q
+        else:
+            self.row[self.id] = F @ self.row[self.id] @ F.T + Q
+            self.phi = F @ self.phi
+            if self.orphan_base is not None:
+                self.orphan_base = F @ self.orphan_base @ F.T  # the correlated part of our error moves too
         self._track_lost(moved, Q)
         self._apply_ready()
         stuck = [c for c in self.waiting.values() if c.k < self.k - GIVE_UP_TICKS]
@@ -184,14 +209,14 @@ class UkfDclNode(Node):
         self.neighbours = self.beacons.snapshot(self.k)
         self._find_self()
 
-        for key, r in keyed_ranges(self.id, sensors):
-            if self.lost and r.target != self.id:
+        for key, r in keyed_measurements(self.id, sensors):
+            if self.lost and key[1] == RANGE and r.target != self.id:
                 self.lost_ranges.append((self.k, r.target, r.range, r.std**2))  # anchored when its beacon is in
                 continue
-            if r.target == self.id or r.target not in self.neighbours:
-                self.stats["measurements_dropped"] += 1  # cannot reach the measured platform
+            if not self.obs.usable(key) or (key[1] != LANDMARK and r.target not in self.neighbours):
+                self.stats["measurements_dropped"] += 1  # cannot reach the measured platform (or model it)
                 continue
-            self.pending[key] = (np.array([r.range]), np.array([[r.std**2]]))
+            self.pending[key] = self.obs.z(key[1], r)
 
         p = self.model.position_dim
         out: list[Send] = [Send(Beacon(self.k, self.model.position(self.x).copy(), self.row[self.id][:p, :p].copy(),
@@ -218,9 +243,28 @@ class UkfDclNode(Node):
         if self.bounded:
             self.epoch += 1
         self.reported = (self.k, self.epoch, key, None)
+        if key[1] == LANDMARK:
+            return self._start_alone(key, z, R)
         msg = DclStart(self.k, self.epoch, list(key), z, R, self.x.copy(), dict(self.row), dict(self.version),
-                       self.orphan, [list(k) for k in sorted(self.pending)])
-        return [Send(msg, key[1])]
+                       self.orphan, [list(k) for k in sorted(self.pending)], self._phi_of())
+        return [Send(msg, key[2])]
+
+    def _phi_of(self) -> dict:
+        return {} if self.phi is None else {self.id: self.phi.copy()}
+
+    def _start_alone(self, key: Key, z: np.ndarray, R: np.ndarray) -> list[Send]:
+        """A landmark: m is its own n. It forms the transform and every gain from its own row,
+        and the token goes round as for a pair, so every node correlated with m gets its gain."""
+        m = self.id
+        token = lambda status, **kw: self._token(key, status, [m], {}, {m: dict(self.version)},
+                                                 [m] if self.orphan else [], set(self.pending), **kw)
+        if self.orphan:
+            return self._forward(token(CHAIN_REFUSED))  # removed from the others' rows first
+        transform = self._transform(key, z, R, self.x, self.row, self._phi_of())
+        if transform is None:
+            self.drop("not-positive-definite", str(key))
+            return self._forward(token(CHAIN_REFUSED))
+        return self._forward(token(CHAIN_OK, **transform))
 
     # ------------------------------------------------------------------ radio
 
@@ -357,23 +401,72 @@ class UkfDclNode(Node):
         return (self._run_queued() if self.bounded else []) + self._start_next() + self._release_held()
 
     def _token(self, key, status, order, parent, versions, orphans, pending, L=None, Y=None, Pz=None, nu=None,
-               gains=None, epoch=None):
-        d, dz = self.model.state_dim, self.meas.dim
+               gains=None, phi=None, epoch=None):
+        n, dz = self._shape(key)
         return DclToken(
             self.k, self.epoch if epoch is None else epoch, list(key), status,
-            np.eye(2 * d) if L is None else L, np.zeros((2 * d, dz)) if Y is None else Y,
+            np.eye(n) if L is None else L, np.zeros((n, dz)) if Y is None else Y,
             np.eye(dz) if Pz is None else Pz, np.zeros(dz) if nu is None else nu,
-            order, parent, gains or {}, versions, orphans, [list(k) for k in sorted(pending)],
+            order, parent, gains or {}, versions, orphans, [list(k) for k in sorted(pending)], phi or {},
         )
+
+    def _shape(self, key) -> tuple[int, int]:
+        """(dimension of the platforms the measurement reads, of z)."""
+        return self.model.state_dim * (1 if key[1] == LANDMARK else 2), self.obs.dim(key[1])
+
+    def _pair(self, key) -> list[int]:
+        """The platforms the measurement reads: measurer, then measured."""
+        return [key[0]] if key[1] == LANDMARK else [key[0], key[2]]
+
+    def _transform(self, key, z, R, x_m, row_m, phi_m) -> dict | None:
+        """The unscented transform of the measurement on the pair's joint block, and the gain of
+        every node correlated with the pair (eq. 20 for the whole set at once), formed from m's
+        and our copies of their cross-covariances (equal to their own at equal versions). None
+        if the pair's block is not positive definite.
+
+        F != I: rows are in core coordinates, C_ij = Phi_i^-1 P_ij Phi_j^-T, and so are the
+        gains: Ktilde_j = Phi_j^-1 K_j = [C_jm Phi_m^T, C_jn Phi_n^T] L^-T Y Pz^-1, with the own
+        blocks P_mm, P_nn (real) entering as Phi^-1 P. Each node applies its own Phi."""
+        m, alone = key[0], key[1] == LANDMARK
+        if alone:
+            P_sub, x = row_m[m], x_m
+        else:
+            P_nm = self._block(m) if self.phi is None else self.phi @ self._block(m) @ phi_m[m].T
+            P_sub, x = np.block([[row_m[m], P_nm.T], [P_nm, self.row[self.id]]]), np.concatenate([x_m, self.x])
+        try:
+            L = np.linalg.cholesky(P_sub)
+        except np.linalg.LinAlgError:
+            return None
+        h, angles = self.obs.h(key)
+        z_bar, Pzz, Y = self.ut.measurement_moments(x, L, h, angles)
+        Pz = Pzz + R
+        sides = [(m, row_m, phi_m.get(m))] + ([] if alone else [(self.id, self.row, self.phi)])
+        touched = sorted(set().union(*(row for _, row, _ in sides)))
+        zero = self._zero
+
+        def core(a, row, phi, j):  # Phi_j^-1 P_ja as the rows give it (P_ja itself when F = I)
+            b = row.get(j, zero).T
+            if phi is None:
+                return b
+            return np.linalg.solve(phi, b) if j == a else b @ phi.T
+
+        P_t = np.vstack([np.hstack([core(a, row, phi, j) for a, row, phi in sides]) for j in touched])
+        K = kalman.gain(kalman.solve_lower(L, P_t.T).T @ Y, Pz)
+        d = self.model.state_dim
+        phi = {} if self.phi is None else {a: p for a, _, p in sides}
+        return dict(L=L, Y=Y, Pz=Pz, nu=self.obs.innovation(z, z_bar, angles),
+                    gains={j: K[i * d:(i + 1) * d] for i, j in enumerate(touched)}, phi=phi)
 
     def _on_start(self, src: int, msg: DclStart) -> list[Send]:
         key = tuple(msg.key)
-        m, n, _ = key
-        d, dz = self.model.state_dim, self.meas.dim
-        if n != self.id or m != src:
+        m, kind, n, _ = key
+        d = self.model.state_dim
+        if kind == LANDMARK or n != self.id or m != src:
             return self.drop("misrouted", f"start {key}")
-        if (msg.x_m.shape != (d,) or msg.z.shape != (dz,) or msg.R.shape != (dz, dz) or m not in msg.row_m
-                or any(b.shape != (d, d) for b in msg.row_m.values())):
+        if (not self.obs.usable(key) or msg.x_m.shape != (d,) or msg.z.shape != (self.obs.dim(kind),)
+                or msg.R.shape != (self.obs.dim(kind),) * 2 or m not in msg.row_m
+                or any(b.shape != (d, d) for b in msg.row_m.values())
+                or (self.phi is not None and (set(msg.phi) != {m} or msg.phi[m].shape != (d, d)))):
             return self.drop("shape", "start")
         self.known_pending.update(tuple(k) for k in msg.pending)
         if self._preempted(key):
@@ -400,8 +493,10 @@ class UkfDclNode(Node):
         if self.lost:
             # Not a range to linearize at our mean; an anchor to find ourselves with. The chain
             # runs empty so the keys it preempted get their turn.
-            p = self.model.position_dim
-            self.finder.add(self.k, self.model.position(msg.x_m), msg.row_m[m][:p, :p], float(msg.z[0]), float(msg.R[0, 0]))
+            if kind == RANGE:
+                p = self.model.position_dim
+                self.finder.add(self.k, self.model.position(msg.x_m), msg.row_m[m][:p, :p], float(msg.z[0]),
+                                float(msg.R[0, 0]))
             return self._forward(token(CHAIN_UNREACHABLE, *head))
         if head[3]:
             return self._forward(token(CHAIN_REFUSED, *head))  # m removes the orphans first
@@ -411,25 +506,13 @@ class UkfDclNode(Node):
                 self.asked.add(m)
                 out.append(Send(DclSync(self.k, dict(self.version)), m))
             return out + self._forward(token(CHAIN_VERSION, *head))
-        P_nm = self._block(m)
-        P_sub = np.block([[msg.row_m[m], P_nm.T], [P_nm, self.row[self.id]]])
-        try:
-            L = np.linalg.cholesky(P_sub)
-        except np.linalg.LinAlgError:
+        transform = self._transform(key, msg.z, msg.R, msg.x_m, msg.row_m, msg.phi)
+        if transform is None:
             # Cannot happen with equal versions; if it does, refuse rather than compute garbage,
             # and let the chain run empty so the keys it preempted get their turn.
             self.drop("not-positive-definite", str(key))
             return self._forward(token(CHAIN_REFUSED, *head))
-        z_bar, Pzz, Y = self.ut.measurement_moments(np.concatenate([msg.x_m, self.x]), L, self.meas.h_joint)
-        Pz = Pzz + msg.R
-        # Every node correlated with m or n gets a gain, from m's and n's copies of its
-        # cross-covariances (equal to its own at equal versions): eq. 20 for the whole set at once.
-        touched = sorted(set(msg.row_m) | set(self.row))
-        zero = self._zero
-        P_t_mn = np.vstack([np.hstack([msg.row_m.get(j, zero).T, self.row.get(j, zero).T]) for j in touched])
-        K = kalman.gain(kalman.solve_lower(L, P_t_mn.T).T @ Y, Pz)
-        gains = {j: K[i * d:(i + 1) * d] for i, j in enumerate(touched)}
-        return self._forward(token(CHAIN_OK, *head, L, Y, Pz, msg.z - z_bar, gains))
+        return self._forward(token(CHAIN_OK, *head, **transform))
 
     def _on_token(self, src: int, msg: DclToken) -> list[Send]:
         key = tuple(msg.key)
@@ -451,7 +534,7 @@ class UkfDclNode(Node):
         token = DclToken(
             msg.k, msg.epoch, msg.key, msg.status, msg.L, msg.Y, msg.Pz, msg.nu, msg.order + [self.id],
             {**msg.parent, self.id: src}, msg.gains, versions, msg.orphans + orphans,
-            [list(k) for k in sorted(pending)],
+            [list(k) for k in sorted(pending)], msg.phi,
         )
         return self._forward(token)
 
@@ -476,9 +559,9 @@ class UkfDclNode(Node):
         touches and run it again; or run it again after asking n for the commits we lack;
         or commit it, with the nodes at our version as participants."""
         key = tuple(token.key)
-        m, n, _ = key
+        m, n = key[0], self.obs.measured(key)
         common = dict(k=token.k, epoch=token.epoch, key=token.key, L=token.L, Y=token.Y, Pz=token.Pz, nu=token.nu,
-                      parent=token.parent, pending=token.pending)
+                      parent=token.parent, pending=token.pending, phi=token.phi)
         nothing = dict(seq=0, version={}, gains={}, participants=[], removed=[], **common)
         rerun = token.status != CHAIN_UNREACHABLE and self.reruns.get(key, 0) < VERSION_RETRIES + 1
         touched = set(token.gains) | set(self.row) | {m, n}
@@ -514,7 +597,12 @@ class UkfDclNode(Node):
             return DclCommit(finished=True, **nothing), out
         participants = sorted(i for i, v in token.versions.items()
                               if v == self.version and i in token.gains and i not in token.orphans)
-        self.nis.append((fusion.nis(token.nu, token.Pz), len(token.nu)))  # the measurer's, once per measurement
+        nis = fusion.nis(token.nu, token.Pz)
+        if not self.gate.admit(key[:3], nis, len(token.nu)):
+            self.stats["measurements_gated"] += 1
+            self.pending.pop(key, None)  # done: neither used nor dropped
+            return DclCommit(finished=True, **nothing), out
+        self.nis.append((nis, len(token.nu)))  # the measurer's, once per measurement
         return DclCommit(seq=self.version.get(self.id, 0) + 1, version=dict(self.version), gains=token.gains,
                          participants=participants, removed=[], finished=True, **common), out
 
@@ -617,11 +705,16 @@ class UkfDclNode(Node):
     def _valid_transform(self, msg: DclToken | DclCommit) -> bool:
         """Shapes fit this swarm, L is a Cholesky factor (lower, positive diagonal), Pz is
         positive definite: what the gain formulas need to be well defined."""
-        d, dz = self.model.state_dim, self.meas.dim
-        if not (msg.L.shape == (2 * d, 2 * d) and msg.Y.shape == (2 * d, dz) and msg.Pz.shape == (dz, dz)
+        if msg.key[1] not in (RANGE, RANGE_BEARING, LANDMARK):
+            return False
+        d, (n, dz) = self.model.state_dim, self._shape(msg.key)
+        if not (msg.L.shape == (n, n) and msg.Y.shape == (n, dz) and msg.Pz.shape == (dz, dz)
                 and msg.nu.shape == (dz,) and all(g.shape == (d, dz) for g in msg.gains.values())):
             return False
-        if msg.L.diagonal().min() <= 0 or msg.L[self._upper].any():
+        if self.phi is not None and msg.gains and (set(msg.phi) != set(self._pair(msg.key))
+                                                   or any(p.shape != (d, d) for p in msg.phi.values())):
+            return False
+        if msg.L.diagonal().min() <= 0 or msg.L[self._upper[n]].any():
             return False
         if dz == 1:
             return bool(msg.Pz[0, 0] > 0)
@@ -714,11 +807,19 @@ class UkfDclNode(Node):
                     self._make_orphan(f"commit {c.key} of k={c.k} came after we moved on")
                     return self._advance(c)
                 participant = False
-            if participant:
+            if participant and self.phi is None:
                 K_i = c.gains[self.id]
                 x = x + K_i @ c.nu
                 for j, K_j in c.gains.items():
                     row[j] = row.get(j, zero) - kalman.covariance_decrement(K_i, c.Pz, K_j)
+            elif participant:
+                # Core gains: our real gain is Phi K_i; core rows change by the core gains alone.
+                K_i = c.gains[self.id]
+                G = self.phi @ K_i
+                x = x + G @ c.nu
+                for j, K_j in c.gains.items():
+                    A, B = (G, G) if j == self.id else (K_i, K_j)
+                    row[j] = row.get(j, zero) - kalman.covariance_decrement(A, c.Pz, B)
             else:
                 g = self._outsider_gain(c, row)
                 if g is not None:
@@ -737,11 +838,17 @@ class UkfDclNode(Node):
     def _outsider_gain(self, c: DclCommit, row: dict) -> np.ndarray | None:
         """Our gain formula on our own row (eq. 20): what the participants' cross-covariances
         with us change by. None when we are not correlated with m or n."""
-        m, n, _ = c.key
-        if m not in row and n not in row:
+        pair = self._pair(c.key)
+        if not any(a in row for a in pair):
             return None
         zero = self._zero
-        P_i_mn = np.hstack([row.get(m, zero), row.get(n, zero)])
+        if self.phi is None:
+            P_i_mn = np.hstack([row.get(a, zero) for a in pair])
+        else:
+            # Core coordinates: C_ia Phi_a^T with the Phi the gains were formed with; our own
+            # block (we were m or n and moved on) as Phi^-1 P_ii, now.
+            P_i_mn = np.hstack([np.linalg.solve(self.phi, row[a]) if a == self.id else row.get(a, zero) @ c.phi[a].T
+                                for a in pair])
         return kalman.gain(kalman.solve_lower(c.L, P_i_mn.T).T @ c.Y, c.Pz)
 
     def _advance(self, c: DclCommit) -> None:
