@@ -18,7 +18,7 @@ from typing import Iterable
 from swarmloc import resolve
 
 PLANAR = ("planar-speed-heading",)
-POSE = ("planar-pose",)  # heading in the state: F is not the identity, so not for UKF-DCL
+POSE = ("planar-pose",)  # heading in the state: F is not the identity (UKF-DCL: core coordinates)
 UAS = ("uas-ins",)
 
 
@@ -151,7 +151,7 @@ for _info in (
                   node="swarmloc.estimators.il:IndependentNode.spec", reference=True,
                   paper="Wang et al. 2019 (baseline)"),
     EstimatorInfo("ukf-dcl", "UKF-DCL", "distributed UKF over serial chains of the robots a measurement correlates",
-                  PLANAR, "tab:blue", node="swarmloc.estimators.ukf_dcl:UkfDclNode.spec",
+                  PLANAR + POSE, "tab:blue", node="swarmloc.estimators.ukf_dcl:UkfDclNode.spec",
                   settings_path="swarmloc.estimators.settings:DclSettings", paper="Wang et al. 2019"),
     EstimatorInfo("ukf-ccl", "UKF-CCL", "centralized UKF over the joint state of the swarm", PLANAR + POSE, "tab:orange",
                   reference=True, batch="swarmloc.estimators.ukf_ccl:CentralizedUKF.from_scenario",
@@ -175,11 +175,13 @@ for _info in (
                   "ranged (at least 3), else dead reckoning", PLANAR, "tab:brown", reference=True,
                   batch="swarmloc.estimators.dnbp:LeastSquaresReference.from_scenario",
                   paper="Wan et al. 2014 (baseline)", requires=("gnss",)),
-    EstimatorInfo("ekf", "EKF alone", "each UAS's own INS/GNSS EKF, nothing shared", UAS, "tab:gray",
+    EstimatorInfo("ekf", "EKF alone", "each platform's own EKF, nothing shared: INS/GNSS on a UAS, odometry and "
+                  "landmarks on a planar-pose robot", UAS + POSE, "tab:gray",
                   node="swarmloc.estimators.ekf:EkfNode.spec", reference=True,
                   paper="Goel et al. 2016 (no sharing)"),
-    EstimatorInfo("ekf-ci", "EKF-CI", "each UAS's EKF fuses its neighbours' estimates through relative measurements "
-                  "with covariance intersection", UAS, "tab:green", node="swarmloc.estimators.ekf_ci:CiNode.spec",
+    EstimatorInfo("ekf-ci", "EKF-CI", "each platform's EKF fuses its neighbours' estimates through relative "
+                  "measurements with covariance intersection", UAS + POSE, "tab:green",
+                  node="swarmloc.estimators.ekf_ci:CiNode.spec",
                   settings_path="swarmloc.estimators.settings:CiSettings", paper="Goel et al. 2016, section 4"),
     EstimatorInfo("ekf-naive", "EKF naive", "as EKF-CI, but neighbours' estimates are fused as if independent",
                   UAS, "tab:red", node="swarmloc.estimators.ekf_ci:NaiveNode.spec",
@@ -188,8 +190,8 @@ for _info in (
                   "UAS fall back to their own EKF when it is out of reach", UAS + ("ground-station",), "tab:purple",
                   node="swarmloc.estimators.fusion_centre:node_spec",
                   settings_path="swarmloc.estimators.settings:CentreSettings", paper="Goel et al. 2016, section 3"),
-    EstimatorInfo("ekf-ccl", "EKF-CCL", "centralized EKF over the joint state of the swarm, offline", UAS, "tab:olive",
-                  reference=True, batch="swarmloc.estimators.ekf_ccl:CentralizedEkf.from_scenario",
+    EstimatorInfo("ekf-ccl", "EKF-CCL", "centralized EKF over the joint state of the swarm, offline", UAS + POSE,
+                  "tab:olive", reference=True, batch="swarmloc.estimators.ekf_ccl:CentralizedEkf.from_scenario",
                   paper="Goel et al. 2016, section 3"),
 ):
     REGISTRY.add(_info)

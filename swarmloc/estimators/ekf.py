@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-from swarmloc import fusion, ins
+from swarmloc import fusion, ins, resolve
 from swarmloc.measurements import PositionFix, Pseudorange, skew
 from swarmloc.models import MOTION_MODELS, UasIns
 from swarmloc.node import Node, NodeSpec, Send
@@ -336,6 +336,9 @@ class EkfNode(Node):
     """
 
     algorithm = "ekf"
+    # This estimator's configuration for planar-pose robots (swarmloc/estimators/pose_ekf.py);
+    # None: it runs on UAS only.
+    pose_node: str | None = "swarmloc.estimators.pose_ekf:PoseEkfNode"
 
     def __init__(self, aid, x0, P0, imu: ins.ImuSpec = ins.ImuSpec(), clock: ins.ClockSpec = ins.ClockSpec()):
         super().__init__(aid, x0, P0, MODEL)
@@ -348,6 +351,8 @@ class EkfNode(Node):
     @classmethod
     def spec(cls, scenario, aid, settings=None) -> NodeSpec:
         agent = scenario.agent(aid)
+        if agent.model == "planar-pose" and cls.pose_node is not None:
+            return resolve(cls.pose_node).spec(scenario, aid, settings)
         if agent.model != MODEL.name:
             raise ValueError(f"{cls.algorithm} runs on {MODEL.name} platforms; agent {aid} is {agent.model}")
         imu = imu_spec(scenario)

@@ -333,8 +333,16 @@ class CentralizedEkf:
         self.nis: dict[int, list[tuple[float, int]]] = {}
 
     @classmethod
-    def from_scenario(cls, scenario, ids, settings=None) -> "CentralizedEkf":
-        return cls([a for a in ids if scenario.agent(a).model == UAS.name], imu_spec(scenario))
+    def from_scenario(cls, scenario, ids, settings=None):
+        """The joint filter of the scenario's UAS and that of its planar-pose robots
+        (swarmloc/estimators/pose_ekf.py), apart: the two never measure each other."""
+        uas = cls([a for a in ids if scenario.agent(a).model == UAS.name], imu_spec(scenario))
+        if not any(scenario.agent(a).model == "planar-pose" for a in ids):
+            return uas
+        from swarmloc.estimators.pose_ekf import PoseCentralizedEkf
+
+        robots = PoseCentralizedEkf.from_scenario(scenario, ids, settings)
+        return robots if not uas.ids else Apart([uas, robots])
 
     def step(self, frames: Mapping[int, Sensors]) -> None:
         """One tick: the members' time updates, then the tick's measurement updates."""
@@ -355,4 +363,21 @@ class CentralizedEkf:
         return Estimate(self.k, x, P, tuple(self.nis.get(aid, ())))
 
 
-__all__ = ["JointEkf", "CentralizedEkf", "transition", "keyed_relative", "gnss_models"]
+class Apart:
+    """Joint filters of parts of one swarm that never measure each other, stepped together."""
+
+    algorithm = "ekf-ccl"
+
+    def __init__(self, parts: list):
+        self.parts = parts
+        self.owner = {a: p for p in parts for a in p.ids}
+
+    def step(self, frames: Mapping[int, Sensors]) -> None:
+        for p in self.parts:
+            p.step(frames)
+
+    def estimate(self, aid: int) -> Estimate:
+        return self.owner[aid].estimate(aid)
+
+
+__all__ = ["JointEkf", "CentralizedEkf", "Apart", "transition", "keyed_relative", "gnss_models"]

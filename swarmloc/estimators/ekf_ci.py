@@ -56,6 +56,7 @@ MAX_HELD = 256  # early beacons kept; a neighbour far ahead cannot fill our memo
 
 class CiNode(EkfNode):
     algorithm = "ekf-ci"
+    pose_node = "swarmloc.estimators.pose_ekf:PoseCiNode"
 
     def __init__(self, aid, x0, P0, imu: ins.ImuSpec = ins.ImuSpec(), clock: ins.ClockSpec = ins.ClockSpec(),
                  criterion: str = "trace"):
@@ -198,6 +199,7 @@ class NaiveNode(CiNode):
     error does."""
 
     algorithm = "ekf-naive"
+    pose_node = None
 
     def fuse(self, dz, Pz):
         dx, P = fusion.naive_fusion(np.zeros(DIM), self.filter.P, dz, Pz, H_POSITION)
