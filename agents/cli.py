@@ -240,6 +240,9 @@ def replay(
                                       help="deliver the robots' observations of each other"),
     gate: Optional[float] = typer.Option(0.999, "--gate", callback=_in_range(0),
                                          help="chi-square gate probability; 0 turns the gate off"),
+    odometry_horizon: Optional[float] = typer.Option(None, "--odometry-horizon", callback=_in_range(0, above=True),
+                                                     help="fit the odometry noise to its drift over this many seconds "
+                                                     "instead of tick by tick (docs/replay.md)"),
     realtime: bool = typer.Option(False, "--realtime", help="tick at the recording's pace (times --speed) "
                                   "instead of as fast as the agents go"),
     speed: float = typer.Option(1.0, "--speed", callback=_in_range(0, above=True), help="--realtime: recorded seconds "
@@ -258,7 +261,8 @@ def replay(
         scenario = sc.replay_scenario(path, estimator=estimator or "ukf-dcl", dt=dt, duration=duration, offset=offset,
                                       robots=_ids(robots, "--robots") if robots else None, landmarks=landmarks,
                                       observations=observations, gate=gate or None,
-                                      mode="realtime" if realtime else "lockstep", speed=speed, seed=seed or 0)
+                                      mode="realtime" if realtime else "lockstep", speed=speed, seed=seed or 0,
+                                      odometry_horizon=odometry_horizon)
     except sc.ScenarioError as exc:
         raise Failure(str(exc), 2) from None
     n = scenario.sensors

@@ -570,10 +570,11 @@ REPLAY_REFERENCES = ("il", "ekf", "ekf-ccl", "ukf-ccl")
 def replay_scenario(path, *, estimator: str = "ukf-dcl", dt: float = 0.1, duration: float | None = None,
                     offset: float = 0.0, robots: list[int] | None = None, landmarks: bool = True,
                     observations: bool = True, gate: float | None = 0.999, mode: str = "lockstep",
-                    speed: float = 1.0, seed: int = 0, noise=None) -> Scenario:
+                    speed: float = 1.0, seed: int = 0, noise=None, odometry_horizon: float | None = None) -> Scenario:
     """The scenario `swarmloc replay` runs: the recording at `path` replayed at ticks of dt, its
     sensor noise fitted against its Vicon truth (swarmloc.mrclam.fit_noise) unless `noise` (a
-    NoiseFit) is given, the agents running `estimator` and the offline references beside it."""
+    NoiseFit) is given (odometry tick by tick, or over `odometry_horizon` seconds), the agents
+    running `estimator` and the offline references beside it."""
     from swarmloc import mrclam
     from swarmloc.estimators import REGISTRY
 
@@ -582,7 +583,7 @@ def replay_scenario(path, *, estimator: str = "ukf-dcl", dt: float = 0.1, durati
         rec = recording(str(p))
     except mrclam.MrclamError as exc:
         raise ScenarioError(str(exc)) from None
-    noise = noise or mrclam.fit_noise(rec, dt)
+    noise = noise or mrclam.fit_noise(rec, dt, horizon=odometry_horizon)
     clock = {"mode": mode, "dt": dt, "speed": speed, **({"duration": duration} if duration is not None else {})}
     world = {"source": "mrclam", "path": str(p), "offset": offset, **({"robots": robots} if robots else {})}
     data = {

@@ -10,6 +10,7 @@ import mrclam_synth
 from netsim.replay import ReplayWorld
 from netsim.sim import Simulation
 from swarmloc import mrclam, scenario
+from swarmloc.results import RunRecord
 from swarmloc.runner import InProcessRunner, make_nodes
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -127,3 +128,33 @@ def test_replay_cli_errors_are_one_line(cli, tmp_path):
     assert len(p.stderr.strip().splitlines()) == 1
     p = cli.run("replay", str(tmp_path), "--dt", "0")
     assert p.returncode == 2 and "--dt" in p.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("estimator", ["ukf-dcl", "ekf-ci"])
+def test_replay_over_agent_processes_equals_in_process(cli, synth, tmp_path, estimator):
+    out = tmp_path / "run"
+    p = cli.run("replay", str(synth), "--estimator", estimator, "--duration", "20", "--out", str(out), "--port",
+                str(cli.port), "--swarm", cli.swarm, "--no-plots", check=True, timeout=300)
+    assert "RMSE of position" in p.stdout and "noise fitted against Vicon" in p.stdout
+    sc = scenario.load(out / "scenario.yaml")
+    assert sc.world.source == "mrclam" and sc.estimator.name == estimator
+    record = InProcessRunner(Simulation(sc), make_nodes(estimator, sc)).run()
+    ref = record.trace(estimator)
+    with np.load(out / "estimates" / f"{estimator}.npz") as f:
+        assert np.array_equal(f["mean"], ref.mean) and np.array_equal(f["cov"], ref.cov)
+    with np.load(out / "truth.npz") as f:
+        assert np.array_equal(f["state"], record.truth_array(), equal_nan=True)
+
+
+@pytest.mark.parametrize("source", ["synthetic", pytest.param("Dataset6", marks=needs_full)])
+def test_ukf_dcl_equals_the_centralized_ukf_on_a_replay(synth, source):
+    path = synth if source == "synthetic" else FULL
+    sc = scenario.replay_scenario(path, estimator="ukf-dcl", duration=30.0)
+    record = InProcessRunner(Simulation(sc), make_nodes("ukf-dcl", sc)).run(RunRecord.for_scenario(sc))
+    from swarmloc.results import compute_references
+
+    compute_references(sc, record, ["ukf-ccl"])
+    dcl, ccl = record.trace("ukf-dcl"), record.trace("ukf-ccl")
+    assert sum(len(f[a].rb) + len(f[a].landmarks) for f in record.sensors for a in f) > 100
+    assert np.abs(dcl.mean - ccl.mean).max() < 1e-9 and np.abs(dcl.cov - ccl.cov).max() < 1e-9
