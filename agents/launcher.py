@@ -405,7 +405,7 @@ def target_table(m: dict, algs: list[str]) -> Table:
 def pose_table(m: dict, algs: list[str]) -> Table:
     """Per agent and estimator: position RMSE (m), heading RMSE (rad) and average NEES, for a
     swarm whose states carry a heading (a replay's robots)."""
-    t = Table(title="RMSE of position (m) / heading (rad), and NEES (3 dof when consistent)")
+    t = Table(title="Per agent: position RMSE (m), heading RMSE (rad), NEES (3 dof when consistent)", show_lines=True)
     t.add_column("estimator")
     for aid in m["agents"]:
         t.add_column(f"A{aid}", justify="right")
@@ -416,7 +416,7 @@ def pose_table(m: dict, algs: list[str]) -> Table:
         parts = [f"{e['rmse_m']:.3f}" if e.get("rmse_m") is not None else "-",
                  f"{e['heading_rmse_rad']:.3f}" if e.get("heading_rmse_rad") is not None else "-",
                  f"{nees['mean']:.1f}" if nees else "-"]
-        return "/".join(parts)
+        return "\n".join(parts)
 
     for a in algs:
         e = m["estimators"][a]

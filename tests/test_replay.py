@@ -136,7 +136,7 @@ def test_replay_over_agent_processes_equals_in_process(cli, synth, tmp_path, est
     out = tmp_path / "run"
     p = cli.run("replay", str(synth), "--estimator", estimator, "--duration", "20", "--out", str(out), "--port",
                 str(cli.port), "--swarm", cli.swarm, "--no-plots", check=True, timeout=300)
-    assert "RMSE of position" in p.stdout and "noise fitted against Vicon" in p.stdout
+    assert "position RMSE (m), heading RMSE (rad), NEES" in p.stdout and "noise fitted against Vicon" in p.stdout
     sc = scenario.load(out / "scenario.yaml")
     assert sc.world.source == "mrclam" and sc.estimator.name == estimator
     record = InProcessRunner(Simulation(sc), make_nodes(estimator, sc)).run()
@@ -158,3 +158,19 @@ def test_ukf_dcl_equals_the_centralized_ukf_on_a_replay(synth, source):
     dcl, ccl = record.trace("ukf-dcl"), record.trace("ukf-ccl")
     assert sum(len(f[a].rb) + len(f[a].landmarks) for f in record.sensors for a in f) > 100
     assert np.abs(dcl.mean - ccl.mean).max() < 1e-9 and np.abs(dcl.cov - ccl.cov).max() < 1e-9
+
+
+def test_link_faults_apply_to_a_replay(synth):
+    """The radio of a replay is netsim's: a partition cuts the chains, and UKF-DCL's estimates
+    then part from the centralized filter's (which sees everything) until it heals."""
+    base = scenario.replay_scenario(synth, estimator="ukf-dcl", duration=20.0)
+    cut = base.with_overrides(faults=[{"at": 5.0, "action": "partition", "groups": [[1], [2, 3]], "duration": 10.0}])
+    sim = Simulation(cut)
+    record = InProcessRunner(sim, make_nodes("ukf-dcl", cut)).run(RunRecord.for_scenario(cut))
+    assert sum(n for (src, dst, why), n in sim.dropped.items() if why == "partition") > 100
+    from swarmloc.results import compute_references
+
+    compute_references(cut, record, ["ukf-ccl"])
+    gap = np.abs(record.trace("ukf-dcl").mean - record.trace("ukf-ccl").mean).max(axis=(1, 2))
+    t = np.array(record.t)
+    assert gap[t < 5.0].max() < 1e-9 and gap[(t > 6.0) & (t < 15.0)].max() > 1e-6
