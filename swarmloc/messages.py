@@ -213,6 +213,19 @@ class Beacon:
     version: Version
 
 
+@message("ci.pose")
+class PoseBeacon:
+    """EKF-CI on planar-pose robots, broadcast every tick: the sender's pose estimate [x, y,
+    heading] of tick k before any fusion of that tick, its covariance, and the sender's
+    observations of other robots in tick k, so that a robot it observed can fuse them too
+    (docs/ekf-ci.md, "Planar-pose robots")."""
+
+    k: Tick
+    pose: Vec
+    cov: SqMat
+    seen: Annotated[list, ListOf(Nested(RangeBearingMsg), max_len=64)] = field(default_factory=list)
+
+
 IdList = Annotated[list, ListOf(Int(0, MAX_ID))]
 
 # Token status: what happened to the measurement on the way. VERSION: m and n had applied

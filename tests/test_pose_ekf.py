@@ -9,10 +9,10 @@ from netsim.sim import Simulation
 from swarmloc import fusion
 from swarmloc import scenario as S
 from swarmloc.estimators import REGISTRY, make_nodes
-from swarmloc.estimators.pose_ekf import POINT, PoseCentralizedEkf, PoseCiNode, PoseEkf, PoseEkfNode
+from swarmloc.estimators.pose_ekf import POINT, PoseCentralizedEkf, PoseCiNode, PoseEkf, PoseEkfNode, split_ci_update
 from swarmloc.kalman import Gate
 from swarmloc.measurements import RangeBearing, StateLayout
-from swarmloc.messages import Beacon, OdometryMsg, RangeBearingMsg, Sensors
+from swarmloc.messages import Beacon, OdometryMsg, PoseBeacon, RangeBearingMsg, Sensors
 from swarmloc.models import MOTION_MODELS, Odometry
 from swarmloc.node import LANDMARK, RANGE_BEARING, NodeSpec, estimate_of
 from swarmloc.runner import InProcessRunner
@@ -246,22 +246,105 @@ def test_ekf_ccl_gates_and_files_nis_under_the_measurer():
 # --------------------------------------------------------------------------- the node's plumbing
 
 
+def beacon(k, x, P, seen=()) -> PoseBeacon:
+    return PoseBeacon(k, np.asarray(x, float), np.asarray(P, float), list(seen))
+
+
 def test_beacons_are_sent_every_tick_held_when_early_and_dropped_when_stale():
     x1, x2 = np.zeros(3), np.array([2.0, 0.0, 0.0])
-    P = np.diag([0.3, 0.3, 0.1]) ** 2
+    P, Pj = np.diag([0.3, 0.3, 0.1]) ** 2, np.eye(3) * 0.01
     node = PoseCiNode(1, x1, P)
-    early = Beacon(1, x2[:2], np.eye(2) * 0.01, {})
+    early = beacon(1, x2, Pj)
     assert node.receive(2, early) == [] and node.stats["held"] == 1
     sends = node.step(frame(1, robots=[rb(2, 2.0, 0.0), rb(1, 1.0, 0.0)]))
-    assert [type(s.msg) for s in sends] == [Beacon] and sends[0].msg.k == 1
-    assert node.stats["fused"] == 1 and node.drops["malformed"] == 1  # the observation of itself
+    assert [type(s.msg) for s in sends] == [PoseBeacon] and sends[0].msg.k == 1
+    assert [m.target for m in sends[0].msg.seen] == [2]  # the observation of itself is no observation
+    alone = PoseEkfNode(1, x1, P)
+    alone.step(frame(1))
+    np.testing.assert_array_equal(sends[0].msg.cov, alone.P)  # before the fusion of tick 1
+    assert node.stats["fused"] == 1 and node.drops["malformed"] == 1
     assert np.trace(node.P[:2, :2]) < np.trace(P[:2, :2])
-    node.receive(2, Beacon(1, x2[:2], np.eye(2) * 0.01, {}))
-    node.receive(2, Beacon(0, x2[:2], np.eye(2) * 0.01, {}))
-    node.receive(3, Beacon(1, x2[:2], np.eye(2) * 0.01, {}))
-    node.receive(3, Beacon(1, [np.nan, 0.0], np.eye(2), {}))
+    node.receive(2, beacon(1, x2, Pj))
+    node.receive(2, beacon(0, x2, Pj))
+    node.receive(3, beacon(1, x2, Pj))
+    node.receive(3, beacon(1, [np.nan, 0.0, 0.0], Pj))
+    node.receive(4, Beacon(1, x2[:2], np.eye(2), {}))
     assert node.drops["duplicate"] == 1 and node.drops["stale"] == 1 and node.stats["unmeasured"] == 1
-    assert node.drops["non-finite"] == 1 and node.stats["fused"] == 1
+    assert node.drops["non-finite"] == 1 and node.drops["unexpected-type"] == 1 and node.stats["fused"] == 1
+
+
+# --------------------------------------------------------------------------- split CI, both ends
+
+
+def contraction(rng, n, m) -> np.ndarray:
+    """A random n x m matrix of spectral norm at most 1."""
+    W = rng.normal(size=(n, m))
+    return W / max(1.0, np.linalg.norm(W, 2)) * rng.uniform(0.0, 1.0)
+
+
+def sqrtm(P) -> np.ndarray:
+    w, V = np.linalg.eigh(P)
+    return V @ np.diag(np.sqrt(w)) @ V.T
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_split_ci_bounds_every_cross_covariance_and_is_tighter_than_plain_ci(seed):
+    """The own pose and a neighbour's, cross-covariance C unknown; two observations between
+    them with independent noise. Whatever C is (any C with [[P_i, C], [C^T, P_j]] PSD), the
+    actual error covariance of the split-CI estimate stays under the P it reports; and R, not
+    being inflated, leaves it tighter than plain CI of the same information."""
+    rng = np.random.default_rng(seed)
+    xi, xj = np.array([0.0, 0.0, 0.3]), np.array([2.0, 1.0, -1.0])
+    A, B = rng.normal(size=(3, 3)) * 0.3, rng.normal(size=(3, 3)) * 0.5
+    Pi, Pj = A @ A.T + 0.01 * np.eye(3), B @ B.T + 0.01 * np.eye(3)
+    model = RangeBearing(POSE, std=[0.1, 0.05], body_frame=True)
+    Hi1, Hj1 = model.jacobians(xi, xj)  # i observes j
+    Hj2, Hi2 = model.jacobians(xj, xi)  # j observes i
+    Hi, Hj, R = np.vstack([Hi1, Hi2]), np.vstack([Hj1, Hj2]), np.kron(np.eye(2), model.R)
+    dep = Hj @ Pj @ Hj.T
+    z_est = Hi @ xi + rng.normal(size=4) * 0.1
+    x, P, w = split_ci_update(xi, Pi, z_est, dep, R, Hi)
+    assert 0.0 < w < 1.0 and np.trace(P) < np.trace(Pi)
+    # The estimate is linear in the errors: e+ = (I - K Hi) e_i + K (Hj e_j + v).
+    S = Hi @ (Pi / w) @ Hi.T + dep / (1 - w) + R
+    K = (Pi / w) @ Hi.T @ np.linalg.inv(S)
+    M = np.hstack([np.eye(3) - K @ Hi, K @ Hj])
+    for _ in range(200):
+        C = sqrtm(Pi) @ contraction(rng, 3, 3) @ sqrtm(Pj)
+        joint = np.block([[Pi, C], [C.T, Pj]])
+        actual = M @ joint @ M.T + K @ R @ K.T
+        assert np.linalg.eigvalsh(P - actual).min() > -1e-10
+    plain = fusion.ci_update(xi, Pi, z_est, dep + R, Hi)[1]
+    assert np.trace(P) < np.trace(plain)
+
+
+def test_an_observation_between_two_robots_is_fused_at_both_ends_once():
+    """Robots 1 and 2 observe each other in tick 1. Each fuses, on the other's beacon, both
+    observations in one split CI (fused 1, seen_by 1), and ends no tighter than the
+    centralized EKF that applies each observation once to independent priors, the best any
+    fusion of that information can do; a robot that is observed but does not observe learns too."""
+    x1, x2 = np.array([0.0, 0.0, 0.2]), np.array([2.0, 0.5, 2.5])
+    P1, P2 = np.diag([0.3, 0.2, 0.1]) ** 2, np.diag([0.1, 0.4, 0.2]) ** 2
+    o12, o21 = seen(x1, x2[:2], 2, extra=0.05), seen(x2, x1[:2], 1, extra=-0.03)
+    nodes = {1: PoseCiNode(1, x1, P1), 2: PoseCiNode(2, x2, P2)}
+    sends = {a: n.step(frame(1, robots=[o])) for (a, n), o in zip(nodes.items(), (o12, o21))}
+    for a, b in ((1, 2), (2, 1)):
+        assert [m.target for m in sends[a][0].msg.seen] == [b]
+        nodes[a].receive(b, sends[b][0].msg)
+        nodes[a].receive(b, sends[b][0].msg)  # a duplicate changes nothing
+        assert nodes[a].stats["fused"] == 1 and nodes[a].stats["seen_by"] == 1 and nodes[a].drops["duplicate"] == 1
+    ccl = PoseCentralizedEkf({1: x1, 2: x2}, {1: P1, 2: P2})
+    ccl.step({1: frame(1, robots=[o12]), 2: frame(1, robots=[o21])})
+    for a in (1, 2):
+        assert np.linalg.eigvalsh(nodes[a].P - ccl.estimate(a).cov).min() > -1e-12
+        assert np.trace(nodes[a].P) < np.trace(ccl.estimate(a).cov) * 2.5  # and not far above it (measured 1.76 and 1.92 times)
+    # Only 1 observes 2: 2 still learns its position from 1's observation.
+    watcher, watched = PoseCiNode(1, x1, P1), PoseCiNode(2, x2, P2)
+    out = watcher.step(frame(1, robots=[o12]))[0].msg
+    watched.step(frame(1))
+    watched.receive(1, out)
+    assert watched.stats["fused"] == 1 and watched.stats["seen_by"] == 1
+    assert np.trace(watched.P[:2, :2]) < 0.9 * np.trace(P2[:2, :2])  # measured 0.83
 
 
 def test_unknown_landmarks_and_bad_stds_are_dropped_and_change_nothing():

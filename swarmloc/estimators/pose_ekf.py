@@ -17,29 +17,37 @@ chi-square quantile of its 2 (or 2m) dimensions; a rejected one changes nothing 
 (`gate.rejected`, a node's stats["gated"]). Gate keys are (measurer, kind, target), as in
 UKF-CCL and UKF-DCL (swarmloc.node.keyed_measurements).
 
-EKF-CI (`PoseCiNode`). Every tick a node broadcasts its position estimate and its covariance (a
-`Beacon` stamped with the tick, before any fusion of that tick, as ekf_ci.CiNode does): who
-observes it cannot be known in advance (a camera's field of view), so it goes out every tick.
-On j's beacon of the tick it observed j in, node i fuses its m observations z of j, z = h(x_i,
-p_j) + v, with p_j ~ N(p_hat_j, P_j) from the beacon. Linearised about (x_hat_i, p_hat_j):
+EKF-CI (`PoseCiNode`). Every tick a node broadcasts a `PoseBeacon`: its pose estimate and
+covariance stamped with the tick, before any fusion of that tick (as ekf_ci.CiNode does with its
+`Beacon`), and its observations of other robots in that tick. Who observes it cannot be known
+in advance (a camera's field of view), so it goes out every tick. An observation between i
+and j is used at both ends: on j's beacon of the tick, node i fuses its own observations of j
+and j's observations of i (the beacon's), all against the one estimate x_j ~ N(x_hat_j, P_j)
+the beacon carries. Each is z = h(x_a, x_b) + v with (a, b) = (i, j) or (j, i); stacked and
+linearised about (x_hat_i, x_hat_j):
 
-    z - h(x_hat_i, p_hat_j) = H_i (x_i - x_hat_i) + [H_j (p_j - p_hat_j) + v]
+    z - h(x_hat) = H_i (x_i - x_hat_i) + [H_j (x_j - x_hat_j) + v]
 
-so z gives an estimate of H_i x_i, z_est = H_i x_hat_i + residual (bearing wrapped), whose error
-is the bracket, covariance R_eff = R + H_j P_j H_j^T (R block-diagonal over the m observations;
-the H_j term couples them, all being through the one p_j). That error is correlated with x_hat_i
-by an unknown amount (j's estimate may hold i's earlier beacons, i's may hold j's), so z_est is
-fused by covariance intersection, fusion.ci_update(x_hat_i, P_i, z_est, R_eff, H_i), omega
-minimising the trace or the determinant of the result (`criterion`). It is conservative: v
-itself is independent of x_hat_i, and only the H_j term would need the intersection (split CI
-would be tighter). The implied-position form of ekf_ci (RelativePosition.implied_position) does
-not fit here: the position of i that z and p_j imply depends on i's own heading, which the
-bearing is measured from. The gate reads nu^T (H_i P_i H_i^T + R_eff)^-1 nu, the NIS as if the
-two were independent. No NIS is recorded for a CI fusion (as in ekf_ci: its innovation has no
-known covariance); the landmarks' are. Observations of i made by others are not used.
-Beacon bookkeeping is ekf_ci.CiNode's: an earlier tick's beacon is stale, a later tick's is
-held until this node steps to it, one per neighbour and tick, an unobserved neighbour's counted
-(stats["unmeasured"]) and otherwise ignored.
+so z gives an estimate of H_i x_i, z_est = H_i x_hat_i + residual (bearings wrapped), whose
+error is the bracket. Its two parts are not alike: v is this tick's sensor noise, independent
+of both estimates, while the H_j term is correlated with x_hat_i by an unknown amount (j's
+estimate may hold i's earlier beacons, i's may hold j's). So z_est is fused by split covariance
+intersection (Julier and Uhlmann; Li et al.; `split_ci_update`): x_hat_i, wholly of unknown
+correlation, inflated to P_i / omega, the dependent part to H_j P_j H_j^T / (1 - omega), R
+(block-diagonal over the observations) taken as it is, then a Kalman update; omega minimises
+the trace or the determinant of the result (`criterion`). Plain CI (fusion.ci_update) would
+inflate R as well. Observations of i by j and of j by i in one tick give z_est with 4 rows on
+3 states: their bearings meet in the relative heading, which neither gives alone. Each
+observation enters each end once, with the estimate of the other end; both ends then hold v,
+which later fusions treat as part of the neighbour's estimate, of unknown correlation. The
+implied-position form of ekf_ci (RelativePosition.implied_position) does not fit here: the
+position of i that z and p_j imply depends on i's own heading, which the bearing is measured
+from. The gate reads nu^T (H_i P_i H_i^T + H_j P_j H_j^T + R)^-1 nu, the NIS as if the two
+were independent. No NIS is recorded for a CI fusion (as in ekf_ci: its innovation has no
+known covariance); the landmarks' are. Beacon bookkeeping is ekf_ci.CiNode's: an earlier
+tick's beacon is stale, a later tick's is held until this node steps to it, one per neighbour
+and tick; one with no observation between the two is counted (stats["unmeasured"]) and
+otherwise ignored.
 
 EKF-CCL (`PoseCentralizedEkf`): the core over every planar-pose robot, fed every frame; a
 tick's observations are processed one EKF update each, in the key order of
@@ -60,7 +68,7 @@ from swarmloc import fusion, kalman
 from swarmloc.estimators.ekf import RejectedInput, checked, checked_covariance, checked_std
 from swarmloc.estimators.ekf_ci import MAX_HELD
 from swarmloc.measurements import RangeBearing, StateLayout
-from swarmloc.messages import Beacon, RangeBearingMsg, Sensors
+from swarmloc.messages import PoseBeacon, RangeBearingMsg, Sensors
 from swarmloc.models import MOTION_MODELS, Odometry
 from swarmloc.node import LANDMARK, RANGE_BEARING, Estimate, Node, NodeSpec, Send, keyed_measurements, odometry_of
 
@@ -197,9 +205,34 @@ class PoseEkfNode(Node):
         return None
 
 
+def split_ci_update(x: np.ndarray, P: np.ndarray, z_est: np.ndarray, Pz_dep: np.ndarray, Pz_ind: np.ndarray,
+                    H: np.ndarray, criterion: str = "trace") -> tuple[np.ndarray, np.ndarray, float]:
+    """Split covariance intersection of the state (x, P) with an estimate z_est of H x.
+
+    (x, P) is wholly of unknown correlation with z_est; z_est's error is a part of unknown
+    correlation (covariance Pz_dep) plus a part independent of everything (Pz_ind). The joint
+    covariance is bounded by diag(P / w, Pz_dep / (1 - w) + Pz_ind) for every w in (0, 1]
+    (Julier and Uhlmann's split CI with the own estimate all dependent), which a Kalman update
+    then carries through: consistent for any cross-covariance, and unlike fusion.ci_update it
+    does not inflate the independent part. w minimises trace or det of the result; w = 1
+    returns (x, P) as copies. Returns (x+, P+, w)."""
+    objective = fusion._objective(criterion)
+
+    def fuse(w: float) -> tuple[np.ndarray, np.ndarray]:
+        if w == 1.0:
+            return x.copy(), P.copy()
+        x_new, P_new, _, _ = fusion.ekf_update(x, P / w, z_est, H @ x, H, Pz_dep / (1.0 - w) + Pz_ind)
+        return x_new, P_new
+
+    # w = 0 would take z_est alone, which leaves what H does not observe unbounded.
+    omega = fusion._best_omega(lambda w: np.inf if w == 0.0 else objective(fuse(w)[1]))
+    return (*fuse(omega), omega)
+
+
 class PoseCiNode(PoseEkfNode):
-    """"ekf-ci" on planar-pose: PoseEkfNode plus a beacon every tick and the covariance
-    intersection of each observed neighbour's beacon (module docstring)."""
+    """"ekf-ci" on planar-pose: PoseEkfNode plus a PoseBeacon every tick and the split
+    covariance intersection, with each neighbour's beacon, of the observations between the two
+    (module docstring)."""
 
     algorithm = "ekf-ci"
 
@@ -211,9 +244,10 @@ class PoseCiNode(PoseEkfNode):
         self.criterion = criterion
         self.measured: dict[int, list[RangeBearingMsg]] = {}  # neighbour -> its observations in tick k
         self.heard: set[int] = set()
-        self.held: list[tuple[int, Beacon]] = []
+        self.held: list[tuple[int, PoseBeacon]] = []
         self.fused: list[tuple[int, float]] = []  # (neighbour, omega) of this tick's fusions, in order
-        self.stats.update({"fused": 0, "unmeasured": 0, "held": 0})
+        # seen_by: the neighbours' observations of this robot fused.
+        self.stats.update({"fused": 0, "seen_by": 0, "unmeasured": 0, "held": 0})
 
     @classmethod
     def spec(cls, scenario, aid, settings=None) -> NodeSpec:
@@ -230,19 +264,21 @@ class PoseCiNode(PoseEkfNode):
         if self.k == before:
             return out
         self.measured, self.heard, self.fused = {}, set(), []
+        seen = []
         for msg in sensors.rb:
             if msg.target == self.id:
                 self.drop("malformed", "an observation of itself")
             else:
                 self.measured.setdefault(msg.target, []).append(msg)
-        out = out + [Send(Beacon(self.k, self.x[:2].copy(), self.P[:2, :2].copy(), {}), None)]
+                seen.append(msg)
+        out = out + [Send(PoseBeacon(self.k, self.x.copy(), self.P.copy(), seen), None)]
         held, self.held = self.held, []
         for src, beacon in held:
             out += self.receive(src, beacon)
         return out
 
     def receive(self, src, msg) -> list[Send]:
-        if not isinstance(msg, Beacon):
+        if not isinstance(msg, PoseBeacon):
             return self.drop("unexpected-type", type(msg).__name__)
         if src == self.id:
             return self.drop("malformed", "own beacon")
@@ -259,47 +295,53 @@ class PoseCiNode(PoseEkfNode):
             self.stats["held"] += 1
             return []
         try:
-            p_j = checked(msg.position, (2,), "beacon position")
-            P_j = checked_covariance(msg.cov, 2, "beacon covariance")
+            x_j = checked(msg.pose, (D,), "beacon pose")
+            P_j = checked_covariance(msg.cov, D, "beacon covariance")
         except RejectedInput as exc:
             return self.drop(exc.reason, f"from {src}: {exc.detail}")
         if src in self.heard:
             return self.drop("duplicate", f"beacon of tick {k} from {src}")
         self.heard.add(src)
-        if src not in self.measured:
+        mine = self.measured.get(src, [])
+        theirs = [m for m in msg.seen if isinstance(m, RangeBearingMsg) and m.target == self.id]
+        if not mine and not theirs:
             self.stats["unmeasured"] += 1
             return []
         try:
-            omega = self.fuse(src, self.measured[src], p_j, P_j)
+            omega = self.fuse(src, mine, theirs, x_j, P_j)
         except RejectedInput as exc:
-            return self.drop(exc.reason, f"observation of {src}: {exc.detail}")
+            return self.drop(exc.reason, f"observations between {src} and {self.id}: {exc.detail}")
         except (np.linalg.LinAlgError, ValueError) as exc:
             return self.drop("numerical", f"fusing {src}'s beacon: {exc}")
         if omega is not None:
             self.fused.append((src, omega))
             self.stats["fused"] += 1
+            self.stats["seen_by"] += len(theirs)
         self._sync()
         return []
 
-    def fuse(self, j: int, observations: list[RangeBearingMsg], p_j: np.ndarray, P_j: np.ndarray) -> float | None:
-        """CI of this node's observations of j with j's beacon (module docstring): omega, or
-        None if the gate rejected them."""
+    def fuse(self, j: int, mine: list[RangeBearingMsg], theirs: list[RangeBearingMsg], x_j: np.ndarray,
+             P_j: np.ndarray) -> float | None:
+        """Split CI of this node's observations of j (`mine`) and j's of it (`theirs`) with j's
+        beacon (module docstring): omega, or None if the gate rejected them."""
         x, P = self.filter.x, self.filter.P
         nus, His, Hjs, Rs = [], [], [], []
-        for msg in observations:
+        rows = [(msg, x, x_j, False) for msg in mine] + [(msg, x_j, x, True) for msg in theirs]
+        for msg, observer, target, by_j in rows:
             z, std = reading(msg)
-            model = RangeBearing(LAYOUT, std=std, other=POINT, body_frame=True)
-            Hi, Hj = model.jacobians(x, p_j)
-            nus.append(model.residual(z, model.h(x, p_j)))
-            His.append(Hi)
-            Hjs.append(Hj)
+            model = RangeBearing(LAYOUT, std=std, body_frame=True)
+            Ha, Hb = model.jacobians(observer, target)
+            nus.append(model.residual(z, model.h(observer, target)))
+            His.append(Hb if by_j else Ha)
+            Hjs.append(Ha if by_j else Hb)
             Rs.append(model.R)
         nu, Hi, Hj = np.concatenate(nus), np.vstack(His), np.vstack(Hjs)
-        R_eff = kalman.block_diag(Rs) + Hj @ P_j @ Hj.T
-        R_eff = 0.5 * (R_eff + R_eff.T)
-        if not self.filter.gate.admit((self.id, RANGE_BEARING, j), fusion.nis(nu, Hi @ P @ Hi.T + R_eff), len(nu)):
+        dep = Hj @ P_j @ Hj.T
+        dep = 0.5 * (dep + dep.T)
+        R = kalman.block_diag(Rs)
+        if not self.filter.gate.admit((self.id, RANGE_BEARING, j), fusion.nis(nu, Hi @ P @ Hi.T + dep + R), len(nu)):
             return None
-        self.filter.x, self.filter.P, omega = fusion.ci_update(x, P, Hi @ x + nu, R_eff, Hi, self.criterion)
+        self.filter.x, self.filter.P, omega = split_ci_update(x, P, Hi @ x + nu, dep, R, Hi, self.criterion)
         return omega
 
 
@@ -353,4 +395,4 @@ class PoseCentralizedEkf:
         return Estimate(self.k, self.filter.x[b].copy(), self.filter.P[b, b].copy(), tuple(self.nis.get(aid, ())))
 
 
-__all__ = ["PoseEkf", "PoseEkfNode", "PoseCiNode", "PoseCentralizedEkf"]
+__all__ = ["PoseEkf", "PoseEkfNode", "PoseCiNode", "PoseCentralizedEkf", "split_ci_update"]
