@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import re
 import sys
 import time
 from pathlib import Path
@@ -20,7 +19,7 @@ from typing import Literal, Optional
 import typer
 from typer.core import TyperGroup
 
-from agents.control import DEFAULT_ENDPOINT, ControlClient, Failure, NotRunning
+from agents.control import DEFAULT_ENDPOINT, ENDPOINT, ControlClient, Failure, NotRunning
 from swarmloc import wire
 
 
@@ -41,9 +40,14 @@ class _Swarmloc(TyperGroup):
         except typer.TyperException as exc:  # usage errors and Failure
             message = exc.format_message()
             if message:  # empty for a group called without a command: its help is already out
-                typer.echo(f"{typer.style('error:', fg='red', bold=True)} {message}", err=True)
+                error(message)
             sys.exit(exc.exit_code)
         sys.exit(code if isinstance(code, int) else 0)
+
+
+def error(message: str) -> None:
+    """One `error: ...` line on stderr."""
+    typer.echo(f"{typer.style('error:', fg='red', bold=True)} {message}", err=True)
 
 
 app = typer.Typer(cls=_Swarmloc, add_completion=False, no_args_is_help=True,
@@ -85,9 +89,13 @@ def _swarm_name(value: str) -> str:
     return value
 
 
+"""A Zenoh endpoint, protocol/address[?metadata][#config]: what --connect, --listen and an agent
+configuration's `zenoh` accept."""
+
+
 def _endpoints(values: list[str] | None) -> list[str] | None:
     for v in values or ():
-        if not re.fullmatch(r"[a-z0-9-]+/[^?#\s]+(\?[^#\s]*)?(#\S*)?", v):
+        if not ENDPOINT.fullmatch(v):
             raise typer.BadParameter(f"{v!r} is not a Zenoh endpoint like {DEFAULT_ENDPOINT}")
     return values
 
@@ -306,9 +314,47 @@ def study(
 # ------------------------------------------------------------------------------------ agent
 
 
+def _configured_agent(ctx: typer.Context, path: Path, check: bool):
+    """The node and daemon settings of an agent configuration file; (None, None) once
+    --check-config has printed its summary. A bad file is one `error:` line per field, exit 2."""
+    from agents.config import ConfigError, daemon_config, load, node_spec, summary, unused
+
+    # By the source's name: typer vendors its own click, whose ParameterSource is not click's.
+    given = [p.opts[0] for p in ctx.command.params if p.name not in ("config", "check_config", "verbose")
+             and getattr(ctx.get_parameter_source(p.name), "name", "DEFAULT") != "DEFAULT"]
+    if given:
+        raise Failure(f"--config is the whole agent: give it without {', '.join(given)}", 2)
+    try:
+        cfg = load(path)
+        spec = node_spec(cfg)
+    except ConfigError as exc:
+        for line in exc.lines:
+            error(f"{path}: {line}")
+        raise typer.Exit(2) from None
+    if check:
+        typer.echo(f"{path}: a valid agent configuration")
+        for line in summary(cfg, spec):
+            typer.echo(f"  {line}")
+        return None, None
+    if cfg.state_dir is not None:
+        try:
+            cfg.state_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise Failure(f"{path}: state_dir: cannot create {cfg.state_dir}: {exc.strerror or exc}", 2) from None
+    for field in unused(cfg):
+        typer.echo(f"{typer.style('warning:', fg='yellow', bold=True)} {path}: {field}: not read by the daemon yet",
+                   err=True)
+    return spec.build(), daemon_config(cfg)
+
+
 @app.command()
 def agent(
-    id: int = typer.Option(..., "--id", help="this agent's id"),
+    ctx: typer.Context,
+    id: Optional[int] = typer.Option(None, "--id", help="this agent's id (required without --config)"),
+    config: Optional[Path] = typer.Option(None, "--config", help="the whole agent from a configuration file (YAML, "
+                                          "docs/deploy.md#configuration): no scenario, no other option but -v"),
+    check_config: bool = typer.Option(False, "--check-config", help="with --config: validate the file, print a "
+                                      "summary of the agent and exit"),
     scenario: Optional[str] = typer.Option(None, "--scenario", help="take start point, model and filter settings from a scenario"),
     spec: Optional[Path] = typer.Option(None, "--spec", help="build the node from a node spec file (JSON, what `run` "
                                         "writes to logs/agent-ID.node.json): no scenario is parsed in this process"),
@@ -330,9 +376,15 @@ def agent(
     """Start one agent daemon (used by `run`; on a companion computer, run it by hand)."""
     from agents.daemon import AgentConfig, OpenError, load_node, serve
 
-    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING,
-                        format=f"%(asctime)s agent-{id} %(levelname)s %(message)s")
-    if spec is not None:
+    if check_config and config is None:
+        raise Failure("--check-config needs --config FILE", 2)
+    if config is None and id is None:
+        raise typer.BadParameter("required without --config", param_hint=["--id"])
+    if config is not None:
+        node, cfg = _configured_agent(ctx, config, check_config)
+        if node is None:  # --check-config: the summary is out
+            return
+    elif spec is not None:
         if scenario or start or estimator:
             raise Failure("--spec is the whole node: give it without --scenario, --start or --estimator", 2)
         try:
@@ -360,9 +412,12 @@ def agent(
                               "estimator": {"name": estimator}})
         node = make_nodes(estimator, sc, [id])[id]
     else:
-        raise Failure("give --scenario, --start or --spec", 2)
-    cfg = AgentConfig(swarm=swarm, connect=tuple(connect or ([] if mode == "peer" and listen else [DEFAULT_ENDPOINT])), listen=tuple(listen or ()), mode=mode,
-                      direct=direct, state_file=state_file)
+        raise Failure("give --config, --scenario, --start or --spec", 2)
+    if config is None:
+        cfg = AgentConfig(swarm=swarm, connect=tuple(connect or ([] if mode == "peer" and listen else [DEFAULT_ENDPOINT])), listen=tuple(listen or ()), mode=mode,
+                          direct=direct, state_file=state_file)
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING,
+                        format=f"%(asctime)s agent-{node.id} %(levelname)s %(message)s")
     try:
         serve(node, cfg)
     except OpenError as exc:

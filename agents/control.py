@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from pathlib import Path
 
 import typer
@@ -17,6 +18,7 @@ from swarmloc import wire
 
 DEFAULT_PORT = 7447
 DEFAULT_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
+ENDPOINT = re.compile(r"[a-z0-9-]+/[^?#\s]+(\?[^#\s]*)?(#\S*)?")  # a Zenoh endpoint: proto/address[?metadata][#config]
 
 
 class Failure(typer.TyperException):

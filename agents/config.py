@@ -1,0 +1,403 @@
+"""Agent configuration files: one versioned YAML document describes one agent on its own
+computer (`swarmloc agent --config FILE`), where there is no scenario.
+
+The pydantic models below are the schema; their field descriptions are the documentation
+(docs/deploy.md#configuration follows the same words). Unknown fields are errors, and every
+error names its field.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Annotated, Literal, Union
+
+import yaml
+from pydantic import (BaseModel, ConfigDict, Field, FiniteFloat, ValidationError, ValidationInfo, field_validator,
+                      model_validator)
+
+from agents.control import DEFAULT_ENDPOINT, ENDPOINT
+from agents.daemon import AgentConfig
+from swarmloc import wire
+from swarmloc.estimators import REGISTRY
+from swarmloc.models import MOTION_MODELS
+from swarmloc.node import NodeSpec
+from swarmloc.scenario import SCENARIO_VERSION, Estimation, LandmarkSpec, ScenarioError, parse
+
+CONFIG_VERSION = 1
+
+# Their nodes are built from the whole swarm's roster (every agent's id, model and prior), which
+# one agent's file does not have; the registry has no flag for that yet.
+NEEDS_ROSTER = {"csl-ctl": "every agent's prior", "il-ctl": "every agent's id",
+                "ekf-centre": "the ground station and its UAS"}
+
+MAVLINK_URL = re.compile(r"(udpin|udpout|tcp):[^:\s]+:(\d{1,5})|/\S+")
+
+
+class ConfigError(ValueError):
+    """A configuration that cannot be used; one line per problem, `field: message`."""
+
+    def __init__(self, lines: list[str]):
+        super().__init__("\n".join(lines))
+        self.lines = lines
+
+
+class _FieldError(ValueError):
+    """Raised in a validator to name a field below (or beside) the one being validated: pydantic
+    alone would name the model, or `(top level)`, for a rule that spans fields."""
+
+    def __init__(self, path: tuple, message: str):
+        super().__init__(message)
+        self.path, self.message = path, message
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+def _base(info: ValidationInfo) -> Path:
+    """The directory relative paths are taken from: the configuration file's."""
+    return (info.context or {}).get("base", Path.cwd())
+
+
+class EstimatorChoice(_Strict):
+    name: str = Field("ukf-dcl", description="the estimator the agent runs (`swarmloc estimators`, column `agents`)")
+    params: dict = Field(default_factory=dict, description="its settings; each estimator documents and validates its "
+                         "own (docs/estimators.md)")
+
+    @model_validator(mode="after")
+    def _runs_here(self):
+        info = REGISTRY.get(self.name)
+        if info is None or not info.runs_on_agents:
+            raise _FieldError(("name",), f"unknown estimator {self.name!r}; agents run one of: "
+                              f"{', '.join(REGISTRY.running())}")
+        if self.name in NEEDS_ROSTER:
+            raise _FieldError(("name",), f"{self.name} needs {NEEDS_ROSTER[self.name]}, which an agent configuration "
+                              "does not have: start it from a scenario (--scenario)")
+        try:
+            info.settings(self.params)
+        except ValueError as exc:  # "estimator NAME params: field: message"; the path says the first part
+            raise _FieldError(("params",), str(exc).removeprefix(f"estimator {self.name} params: ")) from None
+        return self
+
+
+class Prior(_Strict):
+    position: list[FiniteFloat] = Field(description="known start position (m): 2 numbers (x, y) for a planar model, "
+                                        "3 (east, north, up) for uas-ins")
+    heading: FiniteFloat | None = Field(None, description="planar-pose: known start heading (rad, counter-clockwise "
+                                        "from x); required there, refused for other models")
+    std: float = Field(0.1, gt=0, allow_inf_nan=False, description="std of each coordinate of the start position (m)")
+    heading_std: float = Field(1e-3, gt=0, allow_inf_nan=False, description="planar-pose: std of the start heading "
+                               "(rad)")
+
+
+class ZenohSession(_Strict):
+    mode: Literal["peer", "client"] = Field("peer", description="peer: one of the swarm's mesh; client: of a Zenoh "
+                                            "router")
+    listen: list[str] = Field(default_factory=list, description=f"endpoints to listen on, like {DEFAULT_ENDPOINT}")
+    connect: list[str] = Field(default_factory=list, description="endpoints to connect to (peers or a router)")
+
+    @field_validator("listen", "connect")
+    @classmethod
+    def _endpoints(cls, v):
+        for i, e in enumerate(v):
+            if not ENDPOINT.fullmatch(e):
+                raise _FieldError((i,), f"{e!r} is not a Zenoh endpoint like {DEFAULT_ENDPOINT}")
+        return v
+
+    @model_validator(mode="after")
+    def _reachable(self):
+        # Multicast scouting is off (wire.zenoh_config): without endpoints nobody is ever found.
+        if self.mode == "client" and not self.connect:
+            raise _FieldError(("connect",), "a client needs an endpoint to connect to (its router)")
+        if self.mode == "peer" and not (self.listen or self.connect):
+            raise _FieldError(("listen",), "a peer needs endpoints to listen on or connect to (no scouting)")
+        return self
+
+
+class ZenohSource(_Strict):
+    kind: Literal["zenoh"]
+    key: str | None = Field(None, description="key expression the sensor frames (docs/wire.md) arrive on; null: "
+                            "swarmloc/<swarm>/agent/<id>/sensors")
+
+    @field_validator("key")
+    @classmethod
+    def _key(cls, v):
+        if v is not None and (not all(v.split("/")) or re.search(r"[\s?#$]", v)):
+            raise ValueError(f"{v!r} is not a Zenoh key expression like swarmloc/default/agent/1/sensors")
+        return v
+
+
+class MavlinkSource(_Strict):
+    kind: Literal["mavlink"]
+    url: str = Field(description="the flight controller's link: udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, "
+                     "or a serial device such as /dev/ttyACM0 (docs/deploy.md#connection-strings)")
+    baud: int | None = Field(None, gt=0, description="serial device only: line rate; null: 921600")
+
+    @model_validator(mode="after")
+    def _url(self):
+        m = MAVLINK_URL.fullmatch(self.url)
+        if m is None or (m[2] is not None and not 0 < int(m[2]) < 65536):
+            raise _FieldError(("url",), f"{self.url!r} is not udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT or a "
+                              "serial device path")
+        if self.baud is not None and m[1] is not None:
+            raise _FieldError(("baud",), f"a baud rate is for a serial device, not {self.url}")
+        return self
+
+
+class FileSource(_Strict):
+    kind: Literal["file"]
+    path: Path = Field(description="recorded sensor frames to play back (a run directory's sensors.npz), relative "
+                       "to this file's directory")
+    speed: float = Field(1.0, gt=0, allow_inf_nan=False, description="recorded seconds per wall second")
+
+    @field_validator("path")
+    @classmethod
+    def _exists(cls, v, info: ValidationInfo):
+        v = _base(info) / v.expanduser()
+        if not v.is_file():
+            raise ValueError(f"no such file: {v}")
+        return v
+
+
+Source = Annotated[Union[ZenohSource, MavlinkSource, FileSource], Field(discriminator="kind")]
+SOURCE_KINDS = ("zenoh", "mavlink", "file")
+
+
+class MavlinkOutput(_Strict):
+    rate_hz: float = Field(30.0, gt=0, allow_inf_nan=False, description="most estimates sent a second")
+    message: Literal["odometry", "vision_position_estimate"] = Field("odometry", description="ODOMETRY (position, "
+                                                                     "velocity, attitude) or VISION_POSITION_ESTIMATE "
+                                                                     "(position and attitude)")
+    frame: Literal["local_ned", "local_frd"] = Field("local_ned", description="ODOMETRY's frame_id: local_ned for "
+                                                     "PX4, local_frd for ArduPilot")
+
+    @model_validator(mode="after")
+    def _frame_is_odometry(self):
+        if self.message == "vision_position_estimate" and "frame" in self.model_fields_set:
+            raise _FieldError(("frame",), "only ODOMETRY carries a frame (message: odometry)")
+        return self
+
+
+class Outputs(_Strict):
+    swarm: bool = Field(True, description="publish the estimate on swarmloc/<swarm>/agent/<id>/estimate")
+    mavlink: MavlinkOutput | None = Field(None, description="send the estimate to the flight controller of the "
+                                          "mavlink source; null: not")
+
+
+class AgentFileConfig(_Strict):
+    version: int = Field(description=f"configuration format version; this swarmloc reads {CONFIG_VERSION}")
+    id: int = Field(ge=0, description="this agent's id, unique in the swarm")
+    swarm: str = Field("default", description="swarm name: the key prefix swarmloc/<swarm>/")
+    estimator: EstimatorChoice = Field(default_factory=EstimatorChoice)
+    model: str = Field(description="the platform's motion model (swarmloc.models.MOTION_MODELS); one the estimator "
+                       "runs on")
+    prior: Prior
+    landmarks: list[LandmarkSpec] = Field(default_factory=list, description="the known landmark map, observed by "
+                                          "range and bearing")
+    # The same rules, words and defaults as a scenario's `estimation`.
+    gate: float | None = Estimation.model_fields["gate"]
+    gate_open_after: int = Estimation.model_fields["gate_open_after"]
+    zenoh: ZenohSession
+    sensors: list[Source] = Field(default_factory=lambda: [ZenohSource(kind="zenoh")], min_length=1,
+                                  description="where sensor data comes from; default: the swarm's sensor key")
+    outputs: Outputs = Field(default_factory=Outputs)
+    state_dir: Path | None = Field(None, description="directory of the checkpoint agent-<id>.state.npy (relative to "
+                                   "this file's directory; created at start); null: no checkpoint")
+
+    @field_validator("version")
+    @classmethod
+    def _version(cls, v):
+        if v != CONFIG_VERSION:
+            raise ValueError(f"unsupported version {v}; this swarmloc reads version {CONFIG_VERSION}")
+        return v
+
+    @field_validator("swarm")
+    @classmethod
+    def _swarm(cls, v):
+        wire.Keys(v)  # the CLI's rule (--swarm): a ValueError names the bad name
+        return v
+
+    @field_validator("model")
+    @classmethod
+    def _model(cls, v, info: ValidationInfo):
+        if v not in MOTION_MODELS:
+            raise ValueError(f"unknown model {v!r}; known: {', '.join(MOTION_MODELS)}")
+        est = info.data.get("estimator")  # absent when it failed its own validation
+        if est is not None and v not in REGISTRY[est.name].models:
+            raise ValueError(f"estimator {est.name} runs on {', '.join(REGISTRY[est.name].models)}, not {v}")
+        return v
+
+    @field_validator("prior")
+    @classmethod
+    def _prior_fits(cls, v, info: ValidationInfo):
+        model = info.data.get("model")
+        if model is None:
+            return v
+        want = MOTION_MODELS[model].position_dim
+        if len(v.position) != want:
+            raise _FieldError(("position",), f"{len(v.position)} numbers; model {model} needs {want}")
+        if model == "planar-pose" and v.heading is None:
+            raise _FieldError(("heading",), "required for model planar-pose (its state holds the heading)")
+        if model != "planar-pose" and v.heading is not None:
+            raise _FieldError(("heading",), f"only planar-pose has a heading in its state, not {model}")
+        return v
+
+    @field_validator("landmarks")
+    @classmethod
+    def _unique_landmarks(cls, v):
+        ids = [m.id for m in v]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"landmark ids must be unique, got {ids}")
+        return v
+
+    @field_validator("sensors")
+    @classmethod
+    def _one_flight_controller(cls, v):
+        if sum(s.kind == "mavlink" for s in v) > 1:
+            raise ValueError("at most one mavlink source (one flight controller)")
+        return v
+
+    @field_validator("state_dir")
+    @classmethod
+    def _relative_to_file(cls, v, info: ValidationInfo):
+        return None if v is None else _base(info) / v.expanduser()
+
+    @field_validator("outputs")
+    @classmethod
+    def _fc_for_output(cls, v, info: ValidationInfo):
+        sensors = info.data.get("sensors")
+        if v.mavlink is not None and sensors is not None and not any(s.kind == "mavlink" for s in sensors):
+            raise _FieldError(("mavlink",), "needs a sensors entry of kind mavlink: the flight controller link it is "
+                              "sent on")
+        return v
+
+    @property
+    def sensor_key(self) -> str:
+        return wire.Keys(self.swarm).sensors(self.id)
+
+    @property
+    def state_file(self) -> Path | None:
+        return None if self.state_dir is None else self.state_dir / f"agent-{self.id}.state.npy"
+
+
+def _problems(exc: ValidationError) -> list[str]:
+    lines = []
+    for err in exc.errors():
+        loc = list(err["loc"])
+        # A sensor's loc carries its union tag after the index: sensors.0.mavlink.url.
+        loc = [p for i, p in enumerate(loc) if not (p in SOURCE_KINDS and i and isinstance(loc[i - 1], int))]
+        cause = (err.get("ctx") or {}).get("error")
+        if isinstance(cause, _FieldError):
+            loc, msg = loc + list(cause.path), cause.message
+        else:
+            msg = err["msg"].removeprefix("Value error, ")
+            if err["type"] in ("union_tag_invalid", "union_tag_not_found"):
+                loc.append("kind")
+        lines.append(f"{'.'.join(map(str, loc)) or '(top level)'}: {msg}")
+    return lines
+
+
+def parse_config(data, base: Path | None = None) -> AgentFileConfig:
+    """A validated configuration from its YAML's data; `base`: the directory of relative paths."""
+    if not isinstance(data, dict):
+        raise ConfigError([f"(top level): an agent configuration is a YAML mapping, got {type(data).__name__}"])
+    try:
+        return AgentFileConfig.model_validate(data, context={"base": base or Path.cwd()})
+    except ValidationError as exc:
+        raise ConfigError(_problems(exc)) from None
+
+
+def load(path: str | Path) -> AgentFileConfig:
+    """The configuration in the YAML file at `path` (ConfigError listing every bad field)."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise ConfigError([f"cannot read it: {exc.strerror or exc}"]) from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
+        raise ConfigError([f"not valid YAML: {where}{getattr(exc, 'problem', None) or exc}"]) from None
+    return parse_config(data, path.resolve().parent)
+
+
+def scenario(cfg: AgentFileConfig):
+    """The one-agent scenario whose agent `cfg.id` is this configuration's node."""
+    p = cfg.prior
+    return parse({
+        "version": SCENARIO_VERSION, "name": f"agent-{cfg.id}",
+        "world": {"agents": [{"id": cfg.id, "model": cfg.model, "start": p.position, "heading": p.heading or 0.0}],
+                  "landmarks": [m.model_dump() for m in cfg.landmarks]},
+        # On a real platform the prior is what the file says: no drawn error.
+        "estimation": {"initial_std": p.std, "initial_heading_std": p.heading_std, "initial_error": False,
+                       "gate": cfg.gate, "gate_open_after": cfg.gate_open_after},
+        "estimator": {"name": cfg.estimator.name, "params": cfg.estimator.params},
+    }, source=f"agent {cfg.id}'s configuration")
+
+
+def node_spec(cfg: AgentFileConfig) -> NodeSpec:
+    """The agent's node, built by the estimator's registered factory as in a run.
+
+    Through a one-agent scenario (as `--start` does): each factory reads its own part of a
+    scenario (prior, gate, landmarks, IMU model, seed), so one construction path serves every
+    estimator, a new one included, and a file and a scenario saying the same build the same node."""
+    info = REGISTRY[cfg.estimator.name]
+    try:
+        return info.node_spec(scenario(cfg), cfg.id, info.settings(cfg.estimator.params))
+    except (ScenarioError, ValueError) as exc:
+        raise ConfigError([f"estimator: {' '.join(str(exc).split())}"]) from None
+
+
+def daemon_config(cfg: AgentFileConfig) -> AgentConfig:
+    """The daemon's settings: the file's Zenoh session, direct radio (there is no netsim)."""
+    z = cfg.zenoh
+    return AgentConfig(swarm=cfg.swarm, connect=tuple(z.connect), listen=tuple(z.listen), mode=z.mode, direct=True,
+                       state_file=cfg.state_file)
+
+
+def unused(cfg: AgentFileConfig) -> list[str]:
+    """The fields the daemon does not act on yet (docs/deploy.md#not-yet-read-by-the-daemon): it
+    reads sensor frames from the swarm's sensor key only and always publishes on the swarm."""
+    out = [f"sensors.{i} ({s.kind})" for i, s in enumerate(cfg.sensors)
+           if not (s.kind == "zenoh" and s.key in (None, cfg.sensor_key))]
+    if not cfg.outputs.swarm:
+        out.append("outputs.swarm: false")
+    if cfg.outputs.mavlink is not None:
+        out.append("outputs.mavlink")
+    return out
+
+
+def summary(cfg: AgentFileConfig, spec: NodeSpec) -> list[str]:
+    """What `--check-config` prints: the agent as it would start."""
+    p, z, o = cfg.prior, cfg.zenoh, cfg.outputs
+    params = cfg.estimator.params
+    prior = f"position {p.position} +- {p.std:g} m"
+    if p.heading is not None:
+        prior += f", heading {p.heading:g} +- {p.heading_std:g} rad"
+
+    def source(s) -> str:
+        if s.kind == "zenoh":
+            return f"zenoh {s.key or cfg.sensor_key}"
+        if s.kind == "mavlink":
+            return f"mavlink {s.url}" + (f" at {s.baud} baud" if s.baud else "")
+        return f"file {s.path} at {s.speed:g}x"
+
+    outputs = [f"swarm {wire.Keys(cfg.swarm).estimate(cfg.id)}"] if o.swarm else []
+    if o.mavlink is not None:
+        m = o.mavlink
+        outputs.append(f"mavlink {m.message}" + (f" {m.frame}" if m.message == "odometry" else "") + f" at {m.rate_hz:g} Hz")
+    gate = "off" if cfg.gate is None else f"{cfg.gate:g}, open after {cfg.gate_open_after}"
+    rows = [
+        ("id", str(cfg.id)), ("swarm", cfg.swarm),
+        ("estimator", cfg.estimator.name + (f" ({', '.join(f'{k}: {v}' for k, v in params.items())})" if params else "")),
+        ("model", cfg.model),
+        ("prior", prior), ("landmarks", ", ".join(f"{m.id} {m.position}" for m in cfg.landmarks) or "none"),
+        ("gate", gate),
+        ("zenoh", f"{z.mode}; listen {', '.join(z.listen) or '-'}; connect {', '.join(z.connect) or '-'}"),
+        ("sensors", "; ".join(map(source, cfg.sensors))), ("outputs", "; ".join(outputs) or "none"),
+        ("checkpoint", str(cfg.state_file) if cfg.state_file else "none"), ("node", spec.factory),
+    ]
+    if unused(cfg):
+        rows.append(("not yet", f"{', '.join(unused(cfg))}: validated, not read by the daemon yet"))
+    return [f"{k:<11}{v}" for k, v in rows]
