@@ -176,7 +176,7 @@ for _info in (
                   batch="swarmloc.estimators.dnbp:LeastSquaresReference.from_scenario",
                   paper="Wan et al. 2014 (baseline)", requires=("gnss",)),
     EstimatorInfo("ekf", "EKF alone", "each platform's own EKF, nothing shared: INS/GNSS on a UAS, odometry and "
-                  "landmarks on a planar-pose robot", UAS + POSE, "tab:gray",
+                  "landmarks on a planar-pose robot", UAS + POSE, "tab:cyan",
                   node="swarmloc.estimators.ekf:EkfNode.spec", reference=True,
                   paper="Goel et al. 2016 (no sharing)"),
     EstimatorInfo("ekf-ci", "EKF-CI", "each platform's EKF fuses its neighbours' estimates through relative "

@@ -27,7 +27,6 @@ the last `forget_after` ticks. Shares of a tick already run are `late`: counted,
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 
