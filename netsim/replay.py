@@ -41,7 +41,7 @@ class ReplayWorld:
         self.lags = {r: (mrclam.estimate_odometry_lag(self.rec, r) if lags is None else float(lags)) for r in self.ids}
         self.ticks = {r: mrclam.ticked(self.rec, r, self.start, self.dt, self.steps, self.lags[r]) for r in self.ids}
         self.landmark_ids = {m.id for m in w.landmarks}
-        self.dropped = {"subject not replayed": 0, "over frame capacity": 0}
+        self.dropped = {"subject not replayed": 0, "over frame capacity": 0, "negative range": 0}
         self._rows = {r: self._by_tick(tk) for r, tk in self.ticks.items()}
         first = {a.id: np.array(a.start, float) for a in w.agents}
         self.pos = {r: first[r] for r in self.ids}
@@ -79,11 +79,14 @@ class ReplayWorld:
         out = {}
         for r in self.ids:
             tk = self.ticks[r]
-            odometry = OdometryMsg(self.dt if k else 0.0, float(tk.v[k]), 0.0, odo.speed_noise, 0.0,
-                                   float(tk.w[k]), odo.turn_rate_noise)
+            odometry = OdometryMsg(self.dt if k else 0.0, float(tk.v[k]), 0.0, odo.speed_noise, 0.0, float(tk.w[k]),
+                                   odo.turn_rate_noise)
             robots, marks = [], []
             for i in self._rows[r].get(k, ()):
                 s = int(tk.subject[i])
+                if tk.range[i] < 0:  # the loader refuses non-finite numbers; the wire refuses this
+                    self.dropped["negative range"] += 1
+                    continue
                 msg = RangeBearingMsg(s, float(tk.range[i]), float(tk.bearing[i]), rb_cfg.range_noise,
                                       rb_cfg.bearing_noise)
                 if s in self.pos and s != r:

@@ -512,9 +512,18 @@ class Scenario(_Strict):
         return yaml.safe_dump(plain(self.model_dump(exclude_none=False)), sort_keys=False)
 
 
-@functools.lru_cache(maxsize=4)
 def recording(path: str):
-    """A loaded MR.CLAM directory (cached: the launcher, netsim and the references all read it)."""
+    """A loaded MR.CLAM directory, cached while its files are unchanged (the scenario, netsim's
+    world and the noise fit all read it)."""
+    try:
+        stamp = max((f.stat().st_mtime_ns for f in Path(path).iterdir()), default=0)
+    except OSError:
+        stamp = 0  # not a directory: the loader says what is wrong
+    return _recording(path, stamp)
+
+
+@functools.lru_cache(maxsize=4)
+def _recording(path: str, stamp: int):
     from swarmloc import mrclam
 
     return mrclam.load(path)

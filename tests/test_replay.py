@@ -177,3 +177,31 @@ def test_link_faults_apply_to_a_replay(synth):
     gap = np.abs(record.trace("ukf-dcl").mean - record.trace("ukf-ccl").mean).max(axis=(1, 2))
     t = np.array(record.t)
     assert gap[t < 5.0].max() < 1e-9 and gap[(t > 6.0) & (t < 15.0)].max() > 1e-6
+
+
+def test_a_recording_with_bad_numbers_is_refused_or_replayed_without_them(synth, tmp_path):
+    """A NaN anywhere: a one-line error naming the file and row. A negative range: counted and
+    left out of the replay, never a crash."""
+    import shutil
+
+    bad = tmp_path / "bad"
+    shutil.copytree(synth, bad)
+    path = bad / "Robot1_Measurement.dat"
+    lines = path.read_text().splitlines()
+
+    def with_range(i, value):
+        cols = list(lines)
+        row = cols[i].split("\t")
+        row[2] = value
+        cols[i] = "\t".join(row)
+        path.write_text("\n".join(cols) + "\n")
+
+    with_range(10, "nan")
+    with pytest.raises(scenario.ScenarioError, match=r"Robot1_Measurement.dat: data row \d+ holds a non-finite value"):
+        scenario.replay_scenario(bad, estimator="il")
+    with_range(10, "-1.0")
+    sc = scenario.replay_scenario(bad, estimator="il", duration=10.0, gate=None)
+    sim = Simulation(sc)
+    record = InProcessRunner(sim, make_nodes("il", sc)).run(RunRecord.for_scenario(sc))
+    assert sim.world.dropped["negative range"] == 1
+    assert np.isfinite(record.trace("il").mean[1:]).all()
