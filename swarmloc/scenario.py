@@ -568,8 +568,13 @@ def _expand_recorded(data: dict, base: Path | None) -> dict:
     world.setdefault("landmarks", [{"id": s, "position": list(m.xy)} for s, m in sorted(rec.landmarks.items())])
     clock = dict(data.get("clock") or {})
     dt = clock.get("dt", Clock.model_fields["dt"].default)
+    left = rec.duration - offset
+    if left <= 0:
+        raise ScenarioError(f"world.offset: the recording spans {rec.duration:.3f} s, got an offset of {offset:g} s")
     if "duration" not in clock and isinstance(dt, (int, float)) and dt > 0:
-        clock["duration"] = math.floor((rec.duration - offset) / dt + 1e-9) * dt
+        clock["duration"] = math.floor(left / dt + 1e-9) * dt
+    elif isinstance(clock.get("duration"), (int, float)) and clock["duration"] > left + 1e-9:
+        raise ScenarioError(f"clock.duration: the recording has {left:.3f} s after the offset, got {clock['duration']:g} s")
     return {**data, "world": world, "clock": clock}
 
 

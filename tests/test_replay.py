@@ -65,11 +65,17 @@ def test_a_replay_scenario_takes_robots_landmarks_and_duration_from_the_recordin
     ({"source": "mrclam", "path": "SYNTH", "agents": [{"id": 1, "model": "planar-pose", "start": [0, 0]}], "robots": [1, 2]},
      "a replay's agents are its robots"),
     ({"path": "SYNTH", "agents": [{"id": 1, "start": [0, 0]}]}, "for a recorded source"),
+    ({"source": "mrclam", "path": "SYNTH", "offset": 1000.0}, "world.offset"),
 ])
 def test_bad_replay_scenarios_name_the_field(synth, world, field):
     world = {k: (str(synth) if v == "SYNTH" else v) for k, v in world.items()}
     with pytest.raises(scenario.ScenarioError, match=field):
         scenario.parse({"version": 1, "name": "r", "world": world, "estimator": {"name": "il"}})
+
+
+def test_a_duration_beyond_the_recording_is_refused(synth):
+    with pytest.raises(scenario.ScenarioError, match="clock.duration: the recording has 59.975 s after the offset"):
+        scenario.replay_scenario(synth, estimator="il", duration=500.0)
 
 
 def test_relative_paths_are_taken_from_the_scenario_file(synth, tmp_path):
