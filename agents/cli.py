@@ -20,6 +20,7 @@ import typer
 from typer.core import TyperGroup
 
 from agents.control import DEFAULT_ENDPOINT, ENDPOINT, ControlClient, Failure, NotRunning
+from agents import service
 from swarmloc import wire
 
 
@@ -317,7 +318,7 @@ def study(
 def _configured_agent(ctx: typer.Context, path: Path, check: bool):
     """The node and daemon settings of an agent configuration file; (None, None) once
     --check-config has printed its summary. A bad file is one `error:` line per field, exit 2."""
-    from agents.config import ConfigError, daemon_config, load, node_spec, summary, unused
+    from agents.config import ConfigError, daemon_config, load, node_spec, summary
 
     # By the source's name: typer vendors its own click, whose ParameterSource is not click's.
     given = [p.opts[0] for p in ctx.command.params if p.name not in ("config", "check_config", "verbose")
@@ -341,9 +342,6 @@ def _configured_agent(ctx: typer.Context, path: Path, check: bool):
             cfg.state_dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise Failure(f"{path}: state_dir: cannot create {cfg.state_dir}: {exc.strerror or exc}", 2) from None
-    for field in unused(cfg):
-        typer.echo(f"{typer.style('warning:', fg='yellow', bold=True)} {path}: {field}: not read by the daemon yet",
-                   err=True)
     return spec.build(), daemon_config(cfg)
 
 
@@ -422,6 +420,54 @@ def agent(
         serve(node, cfg)
     except OpenError as exc:
         raise Failure(str(exc)) from None
+
+
+# A command of its own, not `agent install-service`: `agent` takes options, not subcommands.
+@app.command("install-service")
+def install_service(
+    config: Path = typer.Option(..., "--config", help="the agent's configuration file (docs/deploy.md#configuration)"),
+    name: Optional[str] = typer.Option(None, "--name", help="the unit's name (default: swarmloc-agent-<id>)"),
+    unit_dir: Path = typer.Option(service.SYSTEM_UNIT_DIR, "--unit-dir",
+                                  help="where to write the unit; ~/.config/systemd/user for a user unit"),
+    user: Optional[str] = typer.Option(None, "--user", help="system unit: run the agent as this user, who then "
+                                       "owns a new state_dir"),
+    dry_run: bool = typer.Option(False, "--dry-run", help="print the unit instead of writing it; create nothing"),
+):
+    """Install an agent as a systemd service: check its configuration, write the unit
+    (restart on failure, logs to the journal), create its state_dir; print what to run next."""
+    from agents.config import ConfigError, load, node_spec
+
+    try:
+        cfg = load(config)
+        node_spec(cfg)  # what --check-config builds: a file that passes here starts
+    except ConfigError as exc:
+        for line in exc.lines:
+            error(f"{config}: {line}")
+        raise typer.Exit(2) from None
+    try:
+        plan = service.plan(config, cfg, name, unit_dir, user)
+    except ValueError as exc:
+        raise Failure(str(exc), 2) from None
+    if dry_run:
+        typer.echo(plan.text, nl=False)
+        return
+    try:
+        note = service.prepare_state_dir(plan)
+        replaced = service.write_unit(plan)
+    except OSError as exc:
+        raise Failure(f"{exc.strerror or exc}{f': {exc.filename}' if exc.filename else ''}"
+                      f"{' (a system unit needs root: sudo)' if isinstance(exc, PermissionError) else ''}") from None
+    typer.echo(f"{'replaced' if replaced else 'wrote'} {plan.path}")
+    if plan.state_dir is not None:
+        typer.echo(f"checkpoints in {plan.state_dir}")
+    if note:
+        typer.echo(f"{typer.style('warning:', fg='yellow', bold=True)} {note}", err=True)
+    typer.echo("next:")
+    for command in service.next_commands(plan):
+        typer.echo(f"  {command}")
+    absent = service.systemd_absent()
+    if absent is not None:
+        typer.echo(f"note: {absent}; run them where systemd runs")
 
 
 # ------------------------------------------------------------------------------------ control

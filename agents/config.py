@@ -12,6 +12,7 @@ import re
 from pathlib import Path
 from typing import Annotated, Literal, Union
 
+import numpy as np
 import yaml
 from pydantic import (BaseModel, ConfigDict, Field, FiniteFloat, ValidationError, ValidationInfo, field_validator,
                       model_validator)
@@ -133,6 +134,17 @@ class MavlinkSource(_Strict):
     url: str = Field(description="the flight controller's link: udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, "
                      "or a serial device such as /dev/ttyACM0 (docs/deploy.md#connection-strings)")
     baud: int | None = Field(None, gt=0, description="serial device only: line rate; null: 921600")
+    tick: float = Field(0.1, gt=0, allow_inf_nan=False, description="estimator tick (s of the flight controller's "
+                        "clock): one sensor frame per tick")
+    speed_std: float = Field(0.1, gt=0, allow_inf_nan=False, description="planar models: std of the speed the "
+                             "flight controller reports (m/s)")
+    heading_std: float = Field(0.02, gt=0, allow_inf_nan=False, description="planar-speed-heading: std of its "
+                               "heading (rad)")
+    turn_rate_std: float = Field(0.01, gt=0, allow_inf_nan=False, description="planar-pose: std of its yaw rate "
+                                 "(rad/s)")
+    origin: list[FiniteFloat] | None = Field(None, min_length=3, max_length=3, description="GNSS fixes are ENU "
+                                             "metres from this [lat, lon, alt MSL] (the swarm frame's origin); null: "
+                                             "the first 3D fix")
 
     @model_validator(mode="after")
     def _url(self):
@@ -149,7 +161,8 @@ class FileSource(_Strict):
     kind: Literal["file"]
     path: Path = Field(description="recorded sensor frames to play back (a run directory's sensors.npz), relative "
                        "to this file's directory")
-    speed: float = Field(1.0, gt=0, allow_inf_nan=False, description="recorded seconds per wall second")
+    speed: Annotated[float, Field(gt=0, allow_inf_nan=False)] | Literal["as_fast_as_possible"] = Field(
+        1.0, description="recorded seconds per wall second, or as_fast_as_possible")
 
     @field_validator("path")
     @classmethod
@@ -158,6 +171,14 @@ class FileSource(_Strict):
         if not v.is_file():
             raise ValueError(f"no such file: {v}")
         return v
+
+    def agents(self) -> list[int]:
+        """The agent ids the recording holds (ValueError when it is no sensors.npz)."""
+        try:
+            with np.load(self.path, allow_pickle=False) as f:
+                return [int(i) for i in f["ids"]]
+        except (OSError, ValueError, KeyError) as exc:
+            raise ValueError(f"{self.path} is not a run's sensors.npz: {exc}") from None
 
 
 Source = Annotated[Union[ZenohSource, MavlinkSource, FileSource], Field(discriminator="kind")]
@@ -258,6 +279,15 @@ class AgentFileConfig(_Strict):
             raise ValueError("at most one mavlink source (one flight controller)")
         return v
 
+    @field_validator("sensors")
+    @classmethod
+    def _recorded_agent(cls, v, info: ValidationInfo):
+        aid = info.data.get("id")
+        for i, s in enumerate(v):
+            if s.kind == "file" and aid is not None and aid not in (ids := s.agents()):
+                raise _FieldError((i, "path"), f"{s.path} holds agents {ids}, not {aid}")
+        return v
+
     @field_validator("state_dir")
     @classmethod
     def _relative_to_file(cls, v, info: ValidationInfo):
@@ -350,22 +380,14 @@ def node_spec(cfg: AgentFileConfig) -> NodeSpec:
 
 
 def daemon_config(cfg: AgentFileConfig) -> AgentConfig:
-    """The daemon's settings: the file's Zenoh session, direct radio (there is no netsim)."""
+    """The daemon's settings: the file's Zenoh session, direct radio (there is no netsim), its
+    sources and outputs."""
     z = cfg.zenoh
     return AgentConfig(swarm=cfg.swarm, connect=tuple(z.connect), listen=tuple(z.listen), mode=z.mode, direct=True,
-                       state_file=cfg.state_file)
-
-
-def unused(cfg: AgentFileConfig) -> list[str]:
-    """The fields the daemon does not act on yet (docs/deploy.md#not-yet-read-by-the-daemon): it
-    reads sensor frames from the swarm's sensor key only and always publishes on the swarm."""
-    out = [f"sensors.{i} ({s.kind})" for i, s in enumerate(cfg.sensors)
-           if not (s.kind == "zenoh" and s.key in (None, cfg.sensor_key))]
-    if not cfg.outputs.swarm:
-        out.append("outputs.swarm: false")
-    if cfg.outputs.mavlink is not None:
-        out.append("outputs.mavlink")
-    return out
+                       state_file=cfg.state_file,
+                       sensor_keys=tuple(s.key or cfg.sensor_key for s in cfg.sensors if s.kind == "zenoh"),
+                       sources=tuple(s for s in cfg.sensors if s.kind != "zenoh"),
+                       publish_swarm=cfg.outputs.swarm, mavlink_output=cfg.outputs.mavlink)
 
 
 def summary(cfg: AgentFileConfig, spec: NodeSpec) -> list[str]:
@@ -381,7 +403,7 @@ def summary(cfg: AgentFileConfig, spec: NodeSpec) -> list[str]:
             return f"zenoh {s.key or cfg.sensor_key}"
         if s.kind == "mavlink":
             return f"mavlink {s.url}" + (f" at {s.baud} baud" if s.baud else "")
-        return f"file {s.path} at {s.speed:g}x"
+        return f"file {s.path} " + ("as fast as possible" if s.speed == "as_fast_as_possible" else f"at {s.speed:g}x")
 
     outputs = [f"swarm {wire.Keys(cfg.swarm).estimate(cfg.id)}"] if o.swarm else []
     if o.mavlink is not None:
@@ -398,6 +420,4 @@ def summary(cfg: AgentFileConfig, spec: NodeSpec) -> list[str]:
         ("sensors", "; ".join(map(source, cfg.sensors))), ("outputs", "; ".join(outputs) or "none"),
         ("checkpoint", str(cfg.state_file) if cfg.state_file else "none"), ("node", spec.factory),
     ]
-    if unused(cfg):
-        rows.append(("not yet", f"{', '.join(unused(cfg))}: validated, not read by the daemon yet"))
     return [f"{k:<11}{v}" for k, v in rows]

@@ -9,6 +9,10 @@ Two radio modes:
   delivers on radio/rx/<id>, stamped with a delivery number that lockstep counts.
 - direct (deployment): frames go straight to radio/rx/<dst> (or radio/rx/all for broadcast)
   and the physical network decides.
+
+Sensor frames come from Zenoh keys (netsim, or a driver) and from sources the loop polls (a
+flight controller, a recording: agents/sources.py); the estimate goes to the swarm's key and,
+when configured, to the flight controller (docs/deploy.md#sensor-sources).
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
+from agents import sources as sensor_sources
 from swarmloc import exit_on_sigterm, wire
 from swarmloc.messages import Clock, Done, EstimateMsg, LinkNack, Reply, Sensors, TargetEstimateMsg
 from swarmloc.node import Node, NodeSpec, Outbox, Timers, estimate_of
@@ -47,6 +52,10 @@ class AgentConfig:
     direct: bool = False
     exit_on_stop: bool = True
     state_file: Path | None = None  # checkpoint: written every tick, resumed from at start
+    sensor_keys: tuple[str, ...] | None = None  # keys of ready sensor frames; None: the swarm's agent/<id>/sensors
+    sources: tuple = ()  # polled sources: agents.config's MavlinkSource and FileSource entries
+    publish_swarm: bool = True  # the estimate on the swarm's estimate key
+    mavlink_output: object | None = None  # agents.config.MavlinkOutput: the estimate to the flight controller
 
 
 class AgentDaemon:
@@ -66,6 +75,10 @@ class AgentDaemon:
         self.ticks_skipped = 0  # ticks whose sensor frame never reached the node
         self.sensor_lag: list[float] = []  # real time: s from a sensor frame's arrival to the node stepping on it
         self._last_published = None
+        self.sources: list = []  # polled (agents/sources.py), built by open()
+        self.fc = None  # the FlightControllerTicks among them that outputs.mavlink goes to
+        self.frame_source = None  # the source of the last sensor frame stepped on, and its time
+        self.frame_t = 0.0
         self._last_checkpoint = -1e9
         self._stop = threading.Event()
         # Node timers: lockstep arms and fires them in modelled time (the tick's t, before its
@@ -86,10 +99,11 @@ class AgentDaemon:
         def frame(kind):
             return lambda s: put((kind, wire.bounded(s.payload), s.attachment))
 
+        sensor_keys = (self.keys.sensors(aid),) if self.cfg.sensor_keys is None else self.cfg.sensor_keys
         self._subs = [
             # Sensor frames carry no attachment: the slot holds their arrival, for the lag stats.
-            self.session.declare_subscriber(self.keys.sensors(aid),
-                                            lambda s: put(("sensors", wire.bounded(s.payload), time.monotonic()))),
+            *(self.session.declare_subscriber(key, lambda s: put(("sensors", wire.bounded(s.payload), time.monotonic())))
+              for key in dict.fromkeys(sensor_keys)),
             self.session.declare_subscriber(self.keys.radio_rx(aid), frame("rx")),
             self.session.declare_subscriber(self.keys.clock, frame("clock")),
         ]
@@ -101,10 +115,15 @@ class AgentDaemon:
         self._block = block
         self._stats_key = self.keys.stats(aid)
         self._stats_q = self.session.declare_queryable(self._stats_key, lambda q: put(("stats", q, None)))
+        self.sources = sensor_sources.build(self.node, self.cfg.sources, self.cfg.mavlink_output)
+        if self.cfg.mavlink_output is not None:
+            self.fc = next(s for s in self.sources if isinstance(s, sensor_sources.FlightControllerTicks))
         # Declared last: once netsim sees the token, every subscription above is in place.
         self._token = self.session.liveliness().declare_token(self.keys.alive(aid))
 
     def close(self) -> None:
+        for source in self.sources:
+            source.close()
         try:
             self._token.undeclare()
         except Exception:
@@ -125,7 +144,8 @@ class AgentDaemon:
                 "sensor_lag_ms_median": lag[len(lag) // 2] * 1e3 if lag else None,
                 "sensor_lag_ms_max": lag[-1] * 1e3 if lag else None,
                 "sent": self.sent, "consumed": self.consumed, "rejected": dict(self.rejected),
-                "node_drops": dict(self.node.drops), **getattr(self.node, "stats", {})}
+                "node_drops": dict(self.node.drops), **getattr(self.node, "stats", {}),
+                **({"sources": {s.name: s.stats() for s in self.sources}} if self.sources else {})}
 
     def _reply_stats(self, query) -> None:
         # Reply on our own key, not the query's: a wildcard query must not consolidate agents away.
@@ -137,6 +157,11 @@ class AgentDaemon:
         """Handle inputs until stopped (signal, stop clock, or stop())."""
         unacked = False  # inputs handled since our last `done`
         while not self._stop.is_set():
+            # Polled sources first, every turn: a busy inbox must not starve a flight controller.
+            now = time.monotonic()
+            for source in self.sources:
+                for body in source.ready(now):
+                    unacked |= self._input("frame", body, source)
             if unacked and self.inbox.empty():
                 # One estimate and one `done` for everything that was queued together: fewer
                 # frames, and fewer wake-ups of netsim, which acts on the last `done` only.
@@ -144,7 +169,7 @@ class AgentDaemon:
                 self._publish_estimate()
                 # Always acknowledge, even a rejected input: lockstep must not wait on us for nothing.
                 self._pub_done.put(wire.encode(Done(self.node.k, self.consumed, self.sent), self.node.id, self.handled))
-            wait = 0.5
+            wait = min([0.5, *(s.wait(time.monotonic()) for s in self.sources)])
             if not self.node.synchronous and (due := self.timers.next_due()) is not None:
                 wait = min(wait, max(0.0, due - self._now()))
             try:  # timed, so a signal handler gets its turn in this thread
@@ -160,18 +185,22 @@ class AgentDaemon:
                 self._reply_stats(data)
                 data = None  # release the query: Zenoh sends the final reply when it is freed
                 continue
-            try:
-                sends = self._handle(kind, data, attachment)
-            except Exception:  # a bug in a node must not take the agent down mid-swarm
-                self.rejected["node-error"] += 1
-                log.exception("agent %s: error handling %s", self.node.id, kind)
-                sends = []
-            if sends is None:
-                continue  # clock: nothing to acknowledge
-            self.handled += 1
-            unacked = True
-            for s in self.timers.split(sends, self._now()):
-                self._send(s)
+            unacked |= self._input(kind, data, attachment)
+
+    def _input(self, kind: str, data, attachment) -> bool:
+        """Hand one input to the node and send what it answers; True if it is to be acknowledged."""
+        try:
+            sends = self._handle(kind, data, attachment)
+        except Exception:  # a bug in a node must not take the agent down mid-swarm
+            self.rejected["node-error"] += 1
+            log.exception("agent %s: error handling %s", self.node.id, kind)
+            sends = []
+        if sends is None:
+            return False  # clock: nothing to acknowledge
+        self.handled += 1
+        for s in self.timers.split(sends, self._now()):
+            self._send(s)
+        return True
 
     def _reject(self, reason: str, why: str) -> None:
         self.rejected[reason] += 1
@@ -202,6 +231,8 @@ class AgentDaemon:
         """Radio frames to send in response; None for inputs that need no acknowledgement."""
         if kind == "timers":
             return self._fire_timers(self._now())
+        if kind == "frame":  # from a polled source: decoded already, arrived just now
+            return self._step(data, attachment, None)
         if data is None:
             self._reject("oversize", kind)
             return None if kind == "clock" else []
@@ -221,25 +252,7 @@ class AgentDaemon:
             return None
         if kind == "sensors":
             env = self._envelope(kind, data, (Sensors,))
-            if env is None:
-                return []
-            fired = []
-            if self.node.synchronous:
-                self.model_t = env.body.t
-                fired = self._fire_timers(self.model_t)
-            elif attachment is not None and len(self.sensor_lag) < 100_000:
-                self.sensor_lag.append(time.monotonic() - attachment)
-            before = self.node.k
-            # The last tick's final estimate goes out before the node moves on, even when inputs
-            # kept the queue from emptying (estimates are otherwise published when it is empty).
-            self._publish_estimate()
-            sends = fired + self.node.step(env.body)
-            if self.node.k == env.body.k:
-                self.ticks += 1
-                if before >= 0:
-                    self.ticks_skipped += max(0, env.body.k - before - 1)
-            self._checkpoint()
-            return sends
+            return [] if env is None else self._step(env.body, None, attachment)
         if not self.cfg.direct:
             # netsim numbers what it delivers to us 1, 2, 3... on one publisher: anything else on
             # our key is not a delivery (a copy, a replay, a stranger) and must not be counted
@@ -257,6 +270,27 @@ class AgentDaemon:
         if env is None:
             return []
         return self._radio(env)
+
+    def _step(self, frame: Sensors, source, arrival: float | None) -> list:
+        """The node's step on a sensor frame (from a key, or a polled `source`)."""
+        fired = []
+        if self.node.synchronous:
+            self.model_t = frame.t
+            fired = self._fire_timers(self.model_t)
+        elif arrival is not None and len(self.sensor_lag) < 100_000:
+            self.sensor_lag.append(time.monotonic() - arrival)
+        before = self.node.k
+        # The last tick's final estimate goes out before the node moves on, even when inputs
+        # kept the queue from emptying (estimates are otherwise published when it is empty).
+        self._publish_estimate()
+        sends = fired + self.node.step(frame)
+        if self.node.k == frame.k:
+            self.ticks += 1
+            if before >= 0:
+                self.ticks_skipped += max(0, frame.k - before - 1)
+            self.frame_source, self.frame_t = source, frame.t
+        self._checkpoint()
+        return sends
 
     def _checkpoint(self) -> None:
         # A file write costs ~2 ms here, a fifth of a lockstep tick: at most every 0.2 s of wall
@@ -331,6 +365,13 @@ class AgentDaemon:
         if sig == self._last_published or e.k < 0:
             return
         self._last_published = sig
+        if self.fc is not None:
+            # On the FC's clock: the tick's own time when the FC's samples made the frame, else
+            # the latest sample's (a frame from another source is stamped on another clock).
+            t = self.frame_t if self.frame_source is self.fc else self.fc.last_t
+            sensor_sources.to_flight_controller(self.fc, self.node.model.name, e.mean, e.cov, t)
+        if not self.cfg.publish_swarm:
+            return
         nis = np.array(e.nis, float).reshape(-1, 2) if e.nis else None
         targets = [TargetEstimateMsg(o, m, P) for o, m, P in e.targets]
         self._pub_est.put(wire.encode(EstimateMsg(e.k, self.node.algorithm, e.mean, e.cov, nis, targets),
@@ -341,7 +382,7 @@ class AgentDaemon:
 
 
 class OpenError(RuntimeError):
-    """The agent's Zenoh session could not be opened (the message says where to)."""
+    """The agent's Zenoh session or a sensor source could not be opened (the message says which)."""
 
 
 def zenoh_message(exc: Exception) -> str:
@@ -360,11 +401,21 @@ def serve(node: Node, cfg: AgentConfig) -> None:
     except zenoh.ZError as exc:
         raise OpenError(f"agent {node.id}: cannot open a Zenoh session ({cfg.mode}, connect {', '.join(cfg.connect)}): "
                         f"{zenoh_message(exc)}") from None
+    except sensor_sources.SourceError as exc:
+        daemon.close()
+        raise OpenError(f"agent {node.id}: {exc}") from None
     keys = daemon.keys
     radio = [keys.radio_rx(node.id), *([keys.radio_rx(BROADCAST)] if cfg.direct else [])]
+    inputs = [*((keys.sensors(node.id),) if cfg.sensor_keys is None else cfg.sensor_keys), *(s.name for s in daemon.sources)]
     log.info("agent %s up (%s mode, connect %s, listen %s, %s radio); waiting for sensor frames on %s, radio frames "
              "on %s, clock on %s", node.id, cfg.mode, ", ".join(cfg.connect), ", ".join(cfg.listen) or "-",
-             "direct" if cfg.direct else "netsim", keys.sensors(node.id), ", ".join(radio), keys.clock)
+             "direct" if cfg.direct else "netsim", ", ".join(inputs) or "-", ", ".join(radio), keys.clock)
+    if len(inputs) > 1:
+        log.warning("agent %s: %d sensor sources (%s); frames are not merged: each must carry whole ticks, and the "
+                    "node steps on whichever tick comes next (docs/deploy.md#sensor-sources)", node.id, len(inputs),
+                    ", ".join(inputs))
+    if not cfg.publish_swarm:
+        log.info("agent %s: outputs.swarm is false: no estimate on %s", node.id, keys.estimate(node.id))
     try:
         daemon.run()
     except KeyboardInterrupt:

@@ -1,0 +1,304 @@
+"""Sensor sources the agent daemon polls from its loop (docs/deploy.md#sensor-sources).
+
+Each turns something outside swarmloc into the node's input: one `Sensors` frame per estimator
+tick, stamped with the sensor's own time. A zenoh source needs no code here (ready frames
+arrive on a key the daemon subscribes to); the two below are polled. `ready(now)` returns the
+frames completed since the last call and never blocks; `wait(now)` says how long the loop may
+sleep before calling again. Both run in the daemon's one thread: pymavlink's parser and the
+node have a single owner.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from swarmloc import ins
+from swarmloc.messages import AlignMsg, GnssMsg, ImuMsg, OdometryMsg, Sensors
+
+log = logging.getLogger("swarmloc.agent")
+
+POLL_PERIOD = 0.02
+"""s between two polls of a flight controller: a serial port's buffer holds ~45 ms at 921600 baud."""
+
+PLANAR_HEIGHT_STD = 100.0
+"""m: a planar estimate says nothing about height, so the flight controller gets its own height
+back with a std no autopilot fuses."""
+
+# Tick 0 of a UAS: the alignment the FC's own estimate gives (EkfNode replaces its placeholder
+# prior with it). Attitude and velocity from an FC's EKF are far better than these; bounding
+# them this loosely keeps the first GNSS fixes in charge.
+ALIGN_VELOCITY_STD = 0.5  # m/s
+ALIGN_ATTITUDE_STD = 0.05  # rad
+
+
+class SourceError(RuntimeError):
+    """A source that cannot be opened at all (a serial device that is not there)."""
+
+
+class FilePlayer:
+    """Agent `aid`'s frames of a run directory's sensors.npz, in order, each when its `t` is
+    due (`speed` recorded seconds per wall second from the first call), or one per call with
+    speed None (as fast as the loop takes them). Then nothing, said once."""
+
+    def __init__(self, path: Path, aid: int, speed: float | None):
+        from swarmloc.results import frames_from_arrays  # scipy: only an agent that replays pays for it
+
+        with np.load(path, allow_pickle=False) as f:
+            arrays = {k: f[k] for k in f.files}
+        if aid not in arrays["ids"].tolist():
+            raise ValueError(f"{path} holds agents {arrays['ids'].tolist()}, not {aid}")
+        self.path, self.aid, self.speed = path, aid, speed
+        self.frames = [frames[aid] for frames in frames_from_arrays(arrays)]
+        self.next = 0
+        self.start: float | None = None  # wall time of the first frame
+
+    @property
+    def name(self) -> str:
+        return f"file {self.path}"
+
+    def _due(self, i: int) -> float:
+        return self.start + (self.frames[i].t - self.frames[0].t) / self.speed
+
+    def ready(self, now: float) -> list[Sensors]:
+        if self.next >= len(self.frames):
+            return []
+        if self.start is None:
+            self.start = now
+        if self.speed is None:
+            stop = self.next + 1
+        else:
+            stop = self.next
+            while stop < len(self.frames) and self._due(stop) <= now:
+                stop += 1
+        out, self.next = self.frames[self.next:stop], stop
+        if out and self.next == len(self.frames):
+            log.warning("agent %s: %s replayed (%d frames, tick %d); no more sensor frames from it, the agent "
+                        "keeps running", self.aid, self.path, len(self.frames), self.frames[-1].k)
+        return out
+
+    def wait(self, now: float) -> float:
+        if self.next >= len(self.frames):
+            return math.inf
+        if self.speed is None or self.start is None:
+            return 0.0
+        return max(0.0, self._due(self.next) - now)
+
+    def stats(self) -> dict:
+        return {"frames": self.next, "of": len(self.frames)}
+
+    def close(self) -> None:
+        pass
+
+
+class FlightControllerTicks:
+    """A flight controller's samples (agents.mavlink.FlightController) cut into ticks.
+
+    The ticks are the FC's clock: tick 0 is the first sample that drives the model (ODOMETRY or
+    LOCAL_POSITION_NED for a planar model, HIGHRES_IMU for uas-ins) at t0, tick k ends at
+    t0 + k * tick, and a driving sample belongs to the tick it falls in. Tick k's frame goes
+    out, stamped t0 + k * tick, when the first sample of a later tick shows that it is
+    complete; a tick without driving samples (the FC fell silent) has no frame, and the node
+    inflates its covariance over it. ATTITUDE and GNSS fixes are kept as they come: the latest
+    attitude serves the samples after it, the latest good fix rides in the next frame.
+
+    The planar frame's odometry is the mean over the tick's samples: speed along the heading
+    (sideways motion is not in the model), the heading (ENU yaw, a circular mean) and the ENU
+    yaw rate as turn rate, with the configured stds. Tick 0 has dt = 0: no motion, as in a run.
+    A uas-ins frame carries the tick's HIGHRES_IMU rows, dt their mean spacing; its tick 0
+    carries the alignment from the FC's attitude, velocity and fix (or the prior's position).
+    """
+
+    def __init__(self, fc, model: str, cfg, prior: tuple[np.ndarray, np.ndarray], aid: int):
+        self.fc, self.model, self.cfg, self.prior, self.aid = fc, model, cfg, prior, aid
+        self.tick = cfg.tick
+        self.planar = model != "uas-ins"
+        self.base: float | None = None  # FC time of tick 0's end: tick k ends at base + k * tick
+        self.k = 0  # the tick being gathered
+        self.last_t = 0.0  # FC time of the latest driving sample
+        self.rows: list = []  # the tick's driving samples, as the model reads them
+        self.fix = None  # latest good fix not yet sent
+        self.attitude = None  # latest Attitude
+        self.velocity = np.zeros(3)  # latest finite FC velocity (ENU), for the alignment
+        self.height = 0.0  # latest FC height (ENU up), sent back with a planar estimate
+        self.imu_t = None  # FC time of the last IMU row already in a frame
+        self.counts: Counter[str] = Counter()
+        self._next_poll = -math.inf
+        self._was = None  # the FC's link state at the last poll
+
+    @property
+    def name(self) -> str:
+        return f"mavlink {self.fc.url}"
+
+    def time_of(self, k: int) -> float:
+        return self.base + k * self.tick
+
+    # ---------------------------------------------------------------- polling
+
+    def ready(self, now: float) -> list[Sensors]:
+        if now < self._next_poll:
+            return []
+        self._next_poll = now + POLL_PERIOD
+        from agents.mavlink import Attitude, GnssFix, Imu, Link, Odometry
+
+        out = []
+        for s in self.fc.poll():
+            if isinstance(s, Attitude):
+                self.attitude = s
+            elif isinstance(s, GnssFix):
+                if s.position is not None and math.isfinite(s.h_acc) and s.h_acc > 0:
+                    self.fix = s
+                else:
+                    self.counts["fix-unusable"] += 1
+            elif isinstance(s, Odometry):
+                if np.all(np.isfinite(s.velocity)):
+                    self.velocity = s.velocity
+                self.height = float(s.position[2])
+                if self.planar:
+                    out += self._driving(s.t, self._planar_row(s))
+            elif isinstance(s, Imu) and not self.planar:
+                out += self._driving(s.t, (s.t, [*s.rate, *s.specific_force]))
+        state = self.fc.state
+        if state is Link.ALIVE and self._was is Link.LOST:
+            # The FC logs the loss at WARNING and the return at INFO: the return is as much news.
+            log.warning("agent %s: the flight controller at %s is back; sensor frames resume", self.aid, self.fc.url)
+        self._was = state
+        return out
+
+    def wait(self, now: float) -> float:
+        return max(0.0, self._next_poll - now)
+
+    def stats(self) -> dict:
+        return {"tick": self.k, "link": self.fc.state.value, "received": dict(self.fc.received),
+                "dropped": dict(self.fc.dropped), "unused": dict(self.counts)}
+
+    def close(self) -> None:
+        self.fc.close()
+
+    # ---------------------------------------------------------------- ticks
+
+    def _planar_row(self, s):
+        """(speed along the heading, cos, sin of the heading, ENU yaw rate), or None."""
+        q = s.q if s.q is not None else (self.attitude.q if self.attitude is not None else None)
+        if q is None or not np.all(np.isfinite(s.velocity)):
+            self.counts["no-attitude" if q is None else "no-velocity"] += 1
+            return None
+        yaw = ins.euler_from_quat(q)[2]
+        c, sn = math.cos(yaw), math.sin(yaw)
+        rate = s.rate if s.rate is not None else (self.attitude.rate if self.attitude is not None else None)
+        wz = float((ins.quat_to_dcm(q) @ rate)[2]) if rate is not None else math.nan
+        return (float(s.velocity[0] * c + s.velocity[1] * sn), c, sn, wz)
+
+    def _driving(self, t: float, row) -> list[Sensors]:
+        if row is None:
+            return []
+        if self.base is None:
+            if not self.planar and self.attitude is None:
+                return []  # tick 0 of a UAS is its alignment, which needs the FC's attitude
+            self.base, self.last_t, self.imu_t = t, t, t
+            self.k = 1
+            return [self._tick0(row)]
+        if t < self.last_t - self.tick:
+            # The FC rebooted (its clock restarts at 0): ticks go on from here, on the new clock.
+            log.warning("agent %s: the flight controller's clock went back from %.3f s to %.3f s; ticks continue "
+                        "from %d", self.aid, self.last_t, t, self.k)
+            self.base, self.imu_t, self.last_t = t - (self.k - 0.5) * self.tick, None, t
+        self.last_t = max(self.last_t, t)
+        k = max(self.k, math.ceil((t - self.base) / self.tick - 1e-9))
+        out = []
+        if k > self.k:
+            if self.rows:
+                out.append(self._frame())
+            self.k, self.rows = k, []
+        self.rows.append(row)
+        return out
+
+    def _gnss(self) -> GnssMsg | None:
+        fix, self.fix = self.fix, None
+        if fix is None:
+            return None
+        if self.planar:
+            return GnssMsg(fix.position[:2].copy(), fix.h_acc)
+        return GnssMsg(fix.position.copy(), fix.h_acc, fix.v_acc if math.isfinite(fix.v_acc) else None)
+
+    def _frame(self) -> Sensors:
+        k, t = self.k, self.time_of(self.k)
+        if self.planar:
+            a = np.array(self.rows)
+            wz = a[:, 3][np.isfinite(a[:, 3])]
+            c = self.cfg
+            odo = OdometryMsg(self.tick, float(a[:, 0].mean()), math.atan2(a[:, 2].mean(), a[:, 1].mean()),
+                              c.speed_std, c.heading_std, float(wz.mean()) if wz.size else 0.0, c.turn_rate_std)
+            return Sensors(k, t, odo, [], self._gnss())
+        times = [r[0] for r in self.rows]
+        start = self.imu_t if self.imu_t is not None and self.imu_t < times[0] else times[0] - self.tick / len(times)
+        self.imu_t = times[-1]
+        imu = ImuMsg((times[-1] - start) / len(times), np.array([r[1] for r in self.rows]))
+        return Sensors(k, t, None, [], self._gnss(), imu)
+
+    def _tick0(self, row) -> Sensors:
+        t = self.base
+        if self.planar:
+            c = self.cfg
+            _, cos, sin, wz = row
+            odo = OdometryMsg(0.0, 0.0, math.atan2(sin, cos), c.speed_std, c.heading_std, 0.0, c.turn_rate_std)
+            return Sensors(0, t, odo, [], self._gnss())
+        x, P = self.prior[0].copy(), self.prior[1].copy()
+        if self.fix is not None:
+            x[0:3] = self.fix.position
+            v = self.fix.v_acc if math.isfinite(self.fix.v_acc) else self.fix.h_acc
+            P[0:3, 0:3] = np.diag([self.fix.h_acc**2, self.fix.h_acc**2, v**2])
+        x[3:6] = self.velocity
+        x[6:9] = ins.rotvec_from_quat(self.attitude.q)
+        for sl, std in ((slice(3, 6), ALIGN_VELOCITY_STD), (slice(6, 9), ALIGN_ATTITUDE_STD)):
+            P[sl, :] = 0.0
+            P[:, sl] = 0.0
+            P[sl, sl] = np.eye(3) * std**2
+        return Sensors(0, t, None, [], self._gnss(), align=AlignMsg(x, P))
+
+
+def build(node, specs, output=None) -> list:
+    """The polled sources of the configuration's `sensors` entries (mavlink, file), in order;
+    `output`: the configuration's outputs.mavlink, which the flight controller's link carries."""
+    out = []
+    for spec in specs:
+        if spec.kind == "file":
+            out.append(FilePlayer(spec.path, node.id, None if spec.speed == "as_fast_as_possible" else spec.speed))
+        elif spec.kind == "mavlink":
+            from agents.mavlink import FlightController, mavlink
+
+            e = node.estimate()
+            try:
+                fc = FlightController(spec.url, baud=spec.baud or 921600,
+                                      origin=tuple(spec.origin) if spec.origin else None, **_output_args(output, mavlink))
+            except Exception as exc:  # pymavlink raises what the OS says (serial, TCP), untyped
+                raise SourceError(f"cannot open the flight controller at {spec.url}: {exc}") from None
+            out.append(FlightControllerTicks(fc, node.model.name, spec, (e.mean, e.cov), node.id))
+    return out
+
+
+def _output_args(output, mavlink) -> dict:
+    if output is None:
+        return {}
+    frame = mavlink.MAV_FRAME_LOCAL_FRD if output.frame == "local_frd" else mavlink.MAV_FRAME_LOCAL_NED
+    return {"output": output.message, "output_hz": output.rate_hz, "frame_id": frame}
+
+
+def to_flight_controller(ticks: FlightControllerTicks, model_name: str, mean: np.ndarray, cov: np.ndarray, t: float):
+    """Offer an estimate to the FC (agents/mavlink.py converts ENU to NED): position with its
+    covariance; a planar model's height is the FC's own (PLANAR_HEIGHT_STD), planar-pose adds
+    its heading, uas-ins its velocity and yaw. True if it went out."""
+    if model_name == "uas-ins":
+        yaw = ins.euler_from_quat(ins.quat_from_rotvec(mean[6:9]))[2]
+        return ticks.fc.send_estimate(t, mean[0:3], cov[0:3, 0:3], mean[3:6], cov[3:6, 3:6], yaw, float(cov[8, 8]))
+    P = np.zeros((3, 3))
+    P[:2, :2] = cov[:2, :2]
+    P[2, 2] = PLANAR_HEIGHT_STD**2
+    position = np.array([mean[0], mean[1], ticks.height])
+    if model_name == "planar-pose":
+        return ticks.fc.send_estimate(t, position, P, yaw=float(mean[2]), yaw_var=float(cov[2, 2]))
+    return ticks.fc.send_estimate(t, position, P)
