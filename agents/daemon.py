@@ -8,7 +8,8 @@ Two radio modes:
 - netsim (simulation): frames go to radio/tx/<id>; netsim decides who hears them and
   delivers on radio/rx/<id>, stamped with a delivery number that lockstep counts.
 - direct (deployment): frames go straight to radio/rx/<dst> (or radio/rx/all for broadcast)
-  and the physical network decides.
+  and the physical network decides. Nobody NACKs: the swarm's liveliness tokens tell the node
+  who left or came back (peer_left, peer_joined), and its timers stand in for the NACKs.
 
 Sensor frames come from Zenoh keys (netsim, or a driver) and from sources the loop polls (a
 flight controller, a recording: agents/sources.py); the estimate goes to the swarm's key and,
@@ -109,6 +110,11 @@ class AgentDaemon:
         ]
         if self.cfg.direct:
             self._subs.append(self.session.declare_subscriber(self.keys.radio_rx(BROADCAST), frame("rx")))
+            # No netsim to NACK frames to an agent that is gone: the swarm's liveliness tokens
+            # tell the node who is there (history: the agents up before us as well).
+            self._subs.append(self.session.liveliness().declare_subscriber(
+                self.keys.alive("*"), lambda s: put(("alive", str(s.key_expr), s.kind == zenoh.SampleKind.PUT)),
+                history=True))
         self._pub_tx = {} if self.cfg.direct else self.session.declare_publisher(self.keys.radio_tx(aid), **block)
         self._pub_est = self.session.declare_publisher(self.keys.estimate(aid), **block)
         self._pub_done = self.session.declare_publisher(self.keys.done(aid), **block)
@@ -231,6 +237,8 @@ class AgentDaemon:
         """Radio frames to send in response; None for inputs that need no acknowledgement."""
         if kind == "timers":
             return self._fire_timers(self._now())
+        if kind == "alive":
+            return self._membership(data, attachment)
         if kind == "frame":  # from a polled source: decoded already, arrived just now
             return self._step(data, attachment, None)
         if data is None:
@@ -270,6 +278,21 @@ class AgentDaemon:
         if env is None:
             return []
         return self._radio(env)
+
+    def _membership(self, key: str, up: bool) -> list:
+        """Direct mode: an agent's liveliness token appeared or went (Zenoh reports a key's
+        first token and its last one going)."""
+        try:
+            aid = wire.Keys.agent_of(key)
+        except ValueError:
+            return self._reject("alive-unknown", key) or []
+        if aid == self.node.id:
+            return []
+        if up:
+            log.info("agent %s: peer %s joined (liveliness)", self.node.id, aid)
+            return self.node.peer_joined(aid)
+        log.warning("agent %s: peer %s left (liveliness token gone); routing around it", self.node.id, aid)
+        return self.node.peer_left(aid)
 
     def _step(self, frame: Sensors, source, arrival: float | None) -> list:
         """The node's step on a sensor frame (from a key, or a polled `source`)."""

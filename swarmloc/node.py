@@ -203,6 +203,15 @@ class Node:
         """The radio reports that unicast `msg` never reached `dst`."""
         return []
 
+    def peer_joined(self, aid: int) -> list[Send]:
+        """The driver's membership (direct mode: Zenoh liveliness) says agent `aid` is up."""
+        return []
+
+    def peer_left(self, aid: int) -> list[Send]:
+        """The driver's membership says agent `aid` is gone (crashed, stopped, out of reach):
+        nothing sent to it arrives until `peer_joined`, and no radio will say so."""
+        return []
+
     def estimate(self) -> Estimate:
         return Estimate(self.k, self.x.copy(), self.P.copy())
 

@@ -43,6 +43,12 @@ gathers every pending key it meets; after the commit the owner of the next key s
 chain. `epoch` counts commits within the tick: a chain frame of another epoch or tick is stale
 (dropped) or early (held until its epoch comes). A node that reported its version to the
 current epoch's chain applies nothing else until that chain's commit (or the next tick).
+
+Without a radio that NACKs (direct mode: frames go straight between agents over Zenoh), every
+step that waits on a peer has a node timer in real time: a start or token whose token has not
+come back, a dcl.sync unanswered, a start queued at a busy platform, a hold. Expiry is the NACK
+the radio never sent (docs/ukf-dcl.md, "Timeouts"); in lockstep no timer is armed. A peer that
+left (the driver's membership, `peer_left`) is unreachable at once until it returns.
 """
 
 from __future__ import annotations
@@ -58,7 +64,8 @@ from swarmloc.messages import (CHAIN_OK, CHAIN_REFUSED, CHAIN_UNREACHABLE, CHAIN
 from swarmloc.estimators.neighbours import NeighbourTable, RetryBudget
 from swarmloc.estimators.rejoin import Multilateration
 from swarmloc.estimators.ukf_ccl import Observations
-from swarmloc.node import LANDMARK, RANGE, RANGE_BEARING, Estimate, Node, NodeSpec, Send, keyed_measurements, odometry_of
+from swarmloc.node import (LANDMARK, RANGE, RANGE_BEARING, Estimate, Node, NodeSpec, Send, Timer, keyed_measurements,
+                           odometry_of)
 
 log = logging.getLogger(__name__)
 Key = tuple[int, int, int, int]
@@ -70,6 +77,8 @@ GIVE_UP_TICKS = 40  # a commit whose history never arrives makes the node an orp
 BUSY_RETRIES = 4  # bounded chains: reruns of a measurement whose measured platform was in another chain
 MAX_QUEUED = 64  # bounded chains: starts waiting at a busy measured platform
 HOLD_TICKS = 10  # real time: longest wait for the commit of a chain we reported to
+# Real time: the unit of a chain step's timeout, a share of the tick (docs/ukf-dcl.md, "Timeouts").
+HOP_TIMEOUT_TICKS = 1 / 64
 
 
 class UkfDclNode(Node):
@@ -136,6 +145,14 @@ class UkfDclNode(Node):
         self.busy_retries: dict[Key, int] = {}  # bounded chains: reruns after n was busy (this tick)
         self.queued: list[tuple[int, DclStart]] = []  # bounded chains: starts waiting for our lock
         self.nis: list[tuple[float, int]] = []  # (NIS, dof) of the measurements this node committed this tick
+        # Real time (docs/ukf-dcl.md, "Timeouts"): the steps whose answer we wait for, by timer
+        # tag; the hops given up this tick, whose late answer is stale; the report the hold
+        # timer runs for; peers that left the swarm; the tick's length, which timeouts scale with.
+        self.awaiting: dict[str, tuple[int, object]] = {}
+        self.timed_out: set[tuple] = set()
+        self.hold_armed: tuple | None = None
+        self.gone: set[int] = set()
+        self.tick_s: float | None = None
         self.stats = {"chains_committed": 0, "measurements_used": 0, "measurements_dropped": 0,
                       "outsider_commits": 0, "commits_replayed": 0, "orphaned": 0, "orphans_removed": 0,
                       "lost": 0, "refound": 0, "refused_holding": 0, "holds_expired": 0, "measurements_gated": 0}
@@ -183,6 +200,9 @@ class UkfDclNode(Node):
         self.queued.clear()
         self.busy_retries.clear()
         self.asked.clear()
+        self.awaiting.clear()  # chain steps of a tick that is over: their answers are stale
+        self.timed_out.clear()
+        self.tick_s = sensors.odometry.dt
         self.seen = {f for f in self.seen if f[2] >= self.k}
         # F = I: prediction leaves every cross-covariance as it is, so it commutes with commits
         # applied late (their outsider part reads only cross-covariances). F != I: so do the
@@ -206,7 +226,7 @@ class UkfDclNode(Node):
 
         # Every node routes on the same snapshot whatever the delivery order (NeighbourTable); a
         # stale neighbour costs a NACK, a missing one a detour.
-        self.neighbours = self.beacons.snapshot(self.k)
+        self.neighbours = {j: p for j, p in self.beacons.snapshot(self.k).items() if j not in self.gone}
         self._find_self()
 
         for key, r in keyed_measurements(self.id, sensors):
@@ -223,7 +243,7 @@ class UkfDclNode(Node):
                                        dict(self.version)), None)]
         out += self._start_next()
         out += self._release_held()
-        return out
+        return self._arm(out)
 
     def _min_pending(self) -> Key | None:
         keys = set(self.pending) | self.known_pending
@@ -247,6 +267,8 @@ class UkfDclNode(Node):
             return self._start_alone(key, z, R)
         msg = DclStart(self.k, self.epoch, list(key), z, R, self.x.copy(), dict(self.row), dict(self.version),
                        self.orphan, [list(k) for k in sorted(self.pending)], self._phi_of())
+        if key[2] in self.gone:
+            return self._unreachable(key[2], msg)  # it left during this tick
         return [Send(msg, key[2])]
 
     def _phi_of(self) -> dict:
@@ -269,6 +291,9 @@ class UkfDclNode(Node):
     # ------------------------------------------------------------------ radio
 
     def receive(self, src, msg) -> list[Send]:
+        return self._arm(self._receive(src, msg))
+
+    def _receive(self, src, msg) -> list[Send]:
         if isinstance(msg, Beacon):
             if self.beacons.valid(src, msg):
                 self.beacons.hear(src, msg)
@@ -280,6 +305,7 @@ class UkfDclNode(Node):
         if isinstance(msg, DclSync):
             return self._on_sync(src, msg)
         if isinstance(msg, DclLog):
+            self.awaiting.pop(self._sync_tag(src, msg.k), None)
             self.stats["commits_replayed"] += len(msg.commits)
             out = []
             for c in msg.commits:
@@ -289,6 +315,10 @@ class UkfDclNode(Node):
             return out + (self._start_next() if self.bounded else [])
         if not isinstance(msg, (DclStart, DclToken, DclCommit)):
             return self.drop("unexpected-type", type(msg).__name__)
+        if isinstance(msg, DclToken) and not self.synchronous:
+            if (src, msg.k, msg.epoch, tuple(msg.key)) in self.timed_out:
+                return self.drop("stale", f"token {msg.key} from {src}, given up on")  # we went on without it
+            self.awaiting.pop(self._hop_tag(src, msg), None)
         # A radio may deliver a frame twice; a second copy of a chain step would run the chain
         # twice. A copy is the same step from the same sender: a token that legitimately comes
         # back (backtracking) has grown, and a resend after a NACK replaces a frame never heard.
@@ -396,6 +426,10 @@ class UkfDclNode(Node):
                 return []
         elif m_version is None or m_version.get(m, 0) != m_seq:
             return []
+        return self._release()
+
+    def _release(self) -> list[Send]:
+        """Our report is settled: apply what waited for it and take up our own chains again."""
         self.reported = None
         self._apply_ready()
         return (self._run_queued() if self.bounded else []) + self._start_next() + self._release_held()
@@ -607,6 +641,13 @@ class UkfDclNode(Node):
                          participants=participants, removed=[], finished=True, **common), out
 
     def link_failed(self, dst: int, msg) -> list[Send]:
+        if isinstance(msg, DclSync):
+            self.awaiting.pop(self._sync_tag(dst, msg.k), None)  # the NACK settled it, not the timer
+        elif isinstance(msg, (DclStart, DclToken)):
+            self.awaiting.pop(self._hop_tag(dst, msg), None)
+        return self._arm(self._link_failed(dst, msg))
+
+    def _link_failed(self, dst: int, msg) -> list[Send]:
         """A unicast did not arrive. Try the same hop again a few times (a lossy link often
         passes the next frame); then route around it, forgetting that neighbour for the tick."""
         if isinstance(msg, (DclSync, DclLog)):
@@ -618,6 +659,11 @@ class UkfDclNode(Node):
         # A lost commit costs dst a replay later; a lost token only a detour: try commits harder.
         if self.retries.again((msg.TYPE, dst, msg.k, msg.epoch), self.max_retries * (3 if isinstance(msg, DclCommit) else 1)):
             return [Send(msg, dst)]
+        return self._unreachable(dst, msg)
+
+    def _unreachable(self, dst: int, msg) -> list[Send]:
+        """dst cannot be reached for the rest of the tick (resends used up, a timeout, or it
+        left): route around it, run the chain empty, or give the chain up."""
         self.neighbours.pop(dst, None)
         if isinstance(msg, DclCommit):
             # dst (and the tree below it) misses this commit; they ask for it (dcl.sync) when a
@@ -634,6 +680,123 @@ class UkfDclNode(Node):
         if msg.parent.get(self.id) == dst:
             return self.drop("chain-broken", f"parent {dst} unreachable")
         return self._forward(msg)
+
+    # ------------------------------------------------------------------ timeouts and membership
+
+    def _hop_tag(self, dst: int, msg: DclStart | DclToken) -> str:
+        return f"dcl.hop {dst} {msg.k} {msg.epoch} {tuple(msg.key)}"
+
+    @staticmethod
+    def _sync_tag(dst: int, k: int) -> str:
+        return f"dcl.sync {dst} {k}"
+
+    def _hop_delay(self, order) -> float:
+        """How long the token sent out from `order` may take to come back: its hops out to every
+        node it may still visit and back (2a + 2 for a nodes ahead), times a + 1 so that it also
+        covers the waits of the nodes ahead running out one after the other; the node that sent
+        the token there gives up only after they have."""
+        visited = set(order)
+        ahead = len((set(self.row) | set(self.version) | set(self.neighbours) | {self.id}) - visited) or 1
+        if self.bounded:
+            ahead = max(1, min(ahead, self.max_chain - len(visited)))
+        return HOP_TIMEOUT_TICKS * self.tick_s * (2 * ahead + 2) * (ahead + 1)
+
+    def _arm(self, out: list[Send]) -> list:
+        """Real time: a timer for every step in `out` that now waits on a peer (a start or a
+        token sent to an unvisited node waits for the token to come back from it; a dcl.sync
+        for a dcl.log), for every start we queued, and for a new report (the hold). Lockstep:
+        the radio NACKs what it cannot deliver and a tick ends only when the swarm is quiet, so
+        nothing is armed."""
+        if self.synchronous or self.tick_s is None:
+            return out
+        timers = []
+        for s in out:
+            if s.dst is None:
+                continue
+            if isinstance(s.msg, DclSync):
+                tag, delay = self._sync_tag(s.dst, s.msg.k), 8 * HOP_TIMEOUT_TICKS * self.tick_s
+            elif isinstance(s.msg, DclStart):
+                tag, delay = self._hop_tag(s.dst, s.msg), self._hop_delay([self.id])
+            elif isinstance(s.msg, DclToken) and s.dst not in s.msg.order:
+                tag, delay = self._hop_tag(s.dst, s.msg), self._hop_delay(s.msg.order)
+            else:
+                continue
+            self.awaiting[tag] = (s.dst, s.msg)
+            timers.append(Timer(delay, tag))
+        for src, msg in self.queued:
+            # Given up before the measurer gives up on us (its wait counts one hop more), so we
+            # never lock ourselves to a chain that has already run empty.
+            tag = "dcl.queued " + self._hop_tag(src, msg)
+            if tag not in self.awaiting:
+                self.awaiting[tag] = (src, msg)
+                timers.append(Timer(self._hop_delay([src]) / 2, tag))
+        if self.reported is not None and self.reported != self.hold_armed:
+            # Ticks end holds (HOLD_TICKS); this fires only if they stop coming. Half a tick
+            # later than that rule, so it never anticipates it.
+            self.hold_armed = self.reported
+            timers.append(Timer((HOLD_TICKS + 1.5) * self.tick_s, "dcl.hold"))
+        return out + timers
+
+    def on_timer(self, tag: str, t: float) -> list:
+        return self._arm(self._expire(tag))
+
+    def _expire(self, tag: str) -> list[Send]:
+        """A wait ran out: what netsim's NACK would have caused, unless the wait is moot (its
+        answer came, its tick or epoch is over, or its chain was preempted: no answer is due)."""
+        if tag == "dcl.hold":
+            if self.reported is None or self.reported != self.hold_armed:
+                return []
+            self.stats["holds_expired"] += 1
+            return self._release()
+        entry = self.awaiting.pop(tag, None)
+        if entry is None:
+            return []
+        dst, msg = entry
+        if isinstance(msg, DclSync):
+            if msg.k != self.k:
+                return []
+            if dst in self.gone:
+                return self.drop("undeliverable", "dcl.sync to a peer that left")
+            return self._link_failed(dst, msg)  # resent: the dcl.log may be what was lost
+        if tag.startswith("dcl.queued"):
+            waiting = [q for q in self.queued if q[1] is msg]
+            if waiting:
+                self.queued.remove(waiting[0])
+                self.drop("timed-out", f"queued start {msg.key}")
+            return []
+        key = tuple(msg.key)
+        if self._when(msg) != 0 or (not self.bounded and min(set(self.pending) | self.known_pending, default=key) < key):
+            return []
+        if isinstance(msg, DclStart) and (self.reported is None or self.reported[:3] != (msg.k, msg.epoch, key)):
+            return []  # we gave our version to another chain since: ours was preempted
+        self.drop("timed-out", f"{msg.TYPE} {key} to {dst}")
+        self.timed_out.add((dst, msg.k, msg.epoch, key))
+        return self._unreachable(dst, msg)
+
+    def peer_left(self, aid: int) -> list:
+        return self._arm(self._left(int(aid)))
+
+    def _left(self, j: int) -> list[Send]:
+        """j left the swarm: unreachable at once (every wait on it runs out now), out of our
+        neighbours until it returns; its own chains can no longer finish, so they neither
+        preempt others nor hold us."""
+        if j == self.id:
+            return []
+        log.info("node %s: peer %s left; unreachable until it returns", self.id, j)
+        self.gone.add(j)
+        self.neighbours.pop(j, None)
+        self.known_pending = {key for key in self.known_pending if key[0] != j}
+        out: list[Send] = []
+        for tag in [t for t, (dst, _) in self.awaiting.items() if dst == j]:
+            out += self._expire(tag)
+        if self.reported is not None and self.reported[2][0] == j:
+            out += self._release()
+        return out
+
+    def peer_joined(self, aid: int) -> list:
+        """aid is back: its beacons make it a neighbour again."""
+        self.gone.discard(int(aid))
+        return []
 
     # ------------------------------------------------------------------ commits
 
