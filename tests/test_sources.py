@@ -108,7 +108,10 @@ def test_flight_controller_round_trip(tmp_path, agents, swarm, message):
     assert all((m.get_srcSystem(), m.get_srcComponent()) == (1, mavlink.MAV_COMP_ID_ONBOARD_COMPUTER) for m in sent)
     assert 9 <= len(sent) <= 14, len(sent)  # 5 Hz over ~2.4 s of estimates
     stamps = [(m.time_usec if kind == "ODOMETRY" else m.usec) * 1e-6 for m in sent]
-    assert np.all(np.diff(stamps) == pytest.approx(0.2, abs=0.02))  # every other 0.1 s tick
+    # On the 0.1 s tick grid, about every other tick: the limiter keeps a wall-clock schedule, so
+    # a late estimate may go one tick later and the next one a tick sooner.
+    gaps = np.round(np.diff(stamps) / 0.1)
+    assert set(gaps.tolist()) <= {1.0, 2.0, 3.0} and abs(gaps.mean() - 2.0) <= 0.3, gaps
     variances = []
     for m, t in zip(sent, stamps):
         cov = m.pose_covariance if kind == "ODOMETRY" else m.covariance
