@@ -14,14 +14,16 @@ from swarmloc import scenario as S
 
 pytestmark = pytest.mark.slow
 RUNS = 20
+AT_ONCE = 3
 
 
 def test_realtime_lossy_partitioned_monte_carlo(cli, tmp_path):
     nees, err, used = {"ukf-dcl": [], "ukf-ccl": []}, {"il": [], "ukf-dcl": []}, []
-    other = Cli(tmp_path)  # a second swarm on its own port: two runs at a time (most of a run is waiting)
-    for pair in range(0, RUNS, 2):
+    # More swarms on their own ports, AT_ONCE runs at a time: most of a real-time run is waiting.
+    clis = [cli] + [Cli(tmp_path) for _ in range(AT_ONCE - 1)]
+    for first in range(0, RUNS, AT_ONCE):
         runs = []
-        for seed, c in zip((pair, pair + 1), (cli, other)):
+        for seed, c in zip(range(first, min(first + AT_ONCE, RUNS)), clis):
             sc = S.load("wang2019").with_overrides(
                 seed=seed, **{"clock.mode": "realtime", "clock.speed": 10.0, "clock.duration": 40.0,
                               "sensors.odometry.turn_rate_noise": 0.0, "sensors.range.probability": 0.8},
@@ -35,7 +37,8 @@ def test_realtime_lossy_partitioned_monte_carlo(cli, tmp_path):
             assert run.returncode == 0, stderr
         for out, _ in runs:
             check_run(out, nees, err, used)
-    other.cleanup()
+    for c in clis[1:]:
+        c.cleanup()
     check_monte_carlo(nees, err, used)
 
 
