@@ -98,13 +98,14 @@ def test_realtime_starved_agent_is_slow_not_dead(cli, tmp_path):
         path.write_text(sc.to_yaml())
         out = tmp_path / f"starved{seed}"
         run = cli.start_run(str(path), out)
-        cli.wait_tick(5, run)
+        k = cli.wait_tick(5, run)["k"]
         pid = agent_pid(cli.swarm, 2)
         stops = 0
-        # Starve it until half a second before the end: a stop that spans netsim's last tick
-        # would leave that tick without the agent's estimate because the run is over, not
-        # because the agent is slow.
-        until = time.monotonic() + (40.0 - 5 * 0.5) / 10.0 - 0.5
+        # Starve it until a second before the end: a stop that spans netsim's last tick would
+        # leave that tick without the agent's estimate because the run is over, not because the
+        # agent is slow. The end is reckoned from the tick netsim reported, the latest known (the
+        # status call itself takes a few ticks, which the second covers).
+        until = time.monotonic() + (sc.clock.steps - k) * sc.clock.dt / sc.clock.speed - 1.0
         try:
             while run.poll() is None and time.monotonic() < until:
                 os.kill(pid, signal.SIGSTOP)
