@@ -54,6 +54,18 @@ class RejectedInput(ValueError):
         self.reason, self.detail = reason, detail
 
 
+def guarded(node, what: str, action, *args):
+    """action(*args), one filter input of `node`: its result, or None if it was refused or
+    failed numerically, which the node counts as a drop and which changes nothing."""
+    try:
+        return action(*args)
+    except RejectedInput as exc:
+        node.drop(exc.reason, f"{what}: {exc.detail}")
+    except np.linalg.LinAlgError as exc:
+        node.drop("numerical", f"{what}: {exc}")
+    return None
+
+
 def checked(a, shape: tuple, what: str) -> np.ndarray:
     """a as a float array of this shape (None: any length on that axis), all finite."""
     try:
@@ -416,12 +428,4 @@ class EkfNode(Node):
             self.drop("non-finite", f"imu: {held} rows held")
 
     def _guard(self, what: str, action, *args):
-        """action(*args), one filter input: its result, or None if it was refused or failed
-        numerically, which is counted and changes nothing."""
-        try:
-            return action(*args)
-        except RejectedInput as exc:
-            self.drop(exc.reason, f"{what}: {exc.detail}")
-        except np.linalg.LinAlgError as exc:
-            self.drop("numerical", f"{what}: {exc}")
-        return None
+        return guarded(self, what, action, *args)

@@ -54,6 +54,35 @@ H_POSITION = LAYOUT.position_matrix()  # eq. 20
 MAX_HELD = 256  # early beacons kept; a neighbour far ahead cannot fill our memory
 
 
+def beacon_timing(node, src: int, msg) -> list | None:
+    """The tick rule of a CI node's beacons (node: k, held, stats, drop): None for a beacon of
+    the node's current tick, to be fused now; otherwise what the node answers (a drop: its own,
+    malformed or stale; [] for an early one, held until the node steps to its tick)."""
+    if src == node.id:
+        return node.drop("malformed", "own beacon")
+    try:
+        k = int(msg.k)
+    except (TypeError, ValueError):
+        return node.drop("malformed", f"beacon tick {msg.k!r}")
+    if k < node.k:
+        return node.drop("stale", f"beacon of tick {k} from {src} at tick {node.k}")
+    if k > node.k:
+        if len(node.held) >= MAX_HELD:
+            return node.drop("held-overflow", f"beacon of tick {k} from {src}")
+        node.held.append((src, msg))
+        node.stats["held"] += 1
+        return []
+    return None
+
+
+def release_held(node) -> list:
+    """Handle the beacons held for the tick the node has just stepped to."""
+    out, (held, node.held) = [], (node.held, [])
+    for src, beacon in held:
+        out += node.receive(src, beacon)
+    return out
+
+
 class CiNode(EkfNode):
     algorithm = "ekf-ci"
     pose_node = "swarmloc.estimators.pose_ekf:PoseCiNode"
@@ -102,37 +131,23 @@ class CiNode(EkfNode):
                 self.measured[r.target] = (z, std)
         if sensors.relpos:
             out = out + [Send(Beacon(self.k, self.filter.position(), self.filter.position_cov(), {}), None)]
-        held, self.held = self.held, []
-        for src, beacon in held:
-            out += self.receive(src, beacon)
-        return out
+        return out + release_held(self)
 
     # ------------------------------------------------------------------ radio
 
     def receive(self, src, msg) -> list[Send]:
         if not isinstance(msg, Beacon):
             return self.drop("unexpected-type", type(msg).__name__)
-        if src == self.id:
-            return self.drop("malformed", "own beacon")
-        try:
-            k = int(msg.k)
-        except (TypeError, ValueError):
-            return self.drop("malformed", f"beacon tick {msg.k!r}")
-        if k < self.k:
-            return self.drop("stale", f"beacon of tick {k} from {src} at tick {self.k}")
-        if k > self.k:
-            if len(self.held) >= MAX_HELD:
-                return self.drop("held-overflow", f"beacon of tick {k} from {src}")
-            self.held.append((src, msg))
-            self.stats["held"] += 1
-            return []
+        early = beacon_timing(self, src, msg)
+        if early is not None:
+            return early
         try:
             p_j = checked(msg.position, (3,), "beacon position")
             P_j = checked_covariance(msg.cov, 3, "beacon covariance")
         except RejectedInput as exc:
             return self.drop(exc.reason, f"from {src}: {exc.detail}")
         if src in self.heard:
-            return self.drop("duplicate", f"beacon of tick {k} from {src}")
+            return self.drop("duplicate", f"beacon of tick {self.k} from {src}")
         self.heard.add(src)
         if src not in self.measured:
             self.stats["unmeasured"] += 1

@@ -65,8 +65,8 @@ from typing import Mapping
 import numpy as np
 
 from swarmloc import fusion, kalman
-from swarmloc.estimators.ekf import RejectedInput, checked, checked_covariance, checked_std
-from swarmloc.estimators.ekf_ci import MAX_HELD
+from swarmloc.estimators.ekf import RejectedInput, checked, checked_covariance, checked_std, guarded
+from swarmloc.estimators.ekf_ci import beacon_timing, release_held
 from swarmloc.measurements import RangeBearing, StateLayout
 from swarmloc.messages import PoseBeacon, RangeBearingMsg, Sensors
 from swarmloc.models import MOTION_MODELS, Odometry
@@ -194,15 +194,8 @@ class PoseEkfNode(Node):
         self.stats.update(gated=self.filter.gate.rejected, gate_forced=self.filter.gate.forced)
 
     def _guard(self, what: str, action, *args):
-        """action(*args): its result, or None if it was refused, gated or failed numerically
-        (the first and last counted as drops; changes nothing)."""
-        try:
-            return action(*args)
-        except RejectedInput as exc:
-            self.drop(exc.reason, f"{what}: {exc.detail}")
-        except np.linalg.LinAlgError as exc:
-            self.drop("numerical", f"{what}: {exc}")
-        return None
+        """guarded(...); a gated update also returns None, and is counted by the gate."""
+        return guarded(self, what, action, *args)
 
 
 def split_ci_update(x: np.ndarray, P: np.ndarray, z_est: np.ndarray, Pz_dep: np.ndarray, Pz_ind: np.ndarray,
@@ -271,36 +264,21 @@ class PoseCiNode(PoseEkfNode):
             else:
                 self.measured.setdefault(msg.target, []).append(msg)
                 seen.append(msg)
-        out = out + [Send(PoseBeacon(self.k, self.x.copy(), self.P.copy(), seen), None)]
-        held, self.held = self.held, []
-        for src, beacon in held:
-            out += self.receive(src, beacon)
-        return out
+        return out + [Send(PoseBeacon(self.k, self.x.copy(), self.P.copy(), seen), None)] + release_held(self)
 
     def receive(self, src, msg) -> list[Send]:
         if not isinstance(msg, PoseBeacon):
             return self.drop("unexpected-type", type(msg).__name__)
-        if src == self.id:
-            return self.drop("malformed", "own beacon")
-        try:
-            k = int(msg.k)
-        except (TypeError, ValueError):
-            return self.drop("malformed", f"beacon tick {msg.k!r}")
-        if k < self.k:
-            return self.drop("stale", f"beacon of tick {k} from {src} at tick {self.k}")
-        if k > self.k:
-            if len(self.held) >= MAX_HELD:
-                return self.drop("held-overflow", f"beacon of tick {k} from {src}")
-            self.held.append((src, msg))
-            self.stats["held"] += 1
-            return []
+        early = beacon_timing(self, src, msg)
+        if early is not None:
+            return early
         try:
             x_j = checked(msg.pose, (D,), "beacon pose")
             P_j = checked_covariance(msg.cov, D, "beacon covariance")
         except RejectedInput as exc:
             return self.drop(exc.reason, f"from {src}: {exc.detail}")
         if src in self.heard:
-            return self.drop("duplicate", f"beacon of tick {k} from {src}")
+            return self.drop("duplicate", f"beacon of tick {self.k} from {src}")
         self.heard.add(src)
         mine = self.measured.get(src, [])
         theirs = [m for m in msg.seen if isinstance(m, RangeBearingMsg) and m.target == self.id]
