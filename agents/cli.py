@@ -19,7 +19,7 @@ from typing import Literal, Optional
 import typer
 from typer.core import TyperGroup
 
-from agents.control import DEFAULT_ENDPOINT, ENDPOINT, ControlClient, Failure, NotRunning
+from agents.control import DEFAULT_ENDPOINT, ENDPOINT, ControlClient, Failure, NobodyAnswers, NotRunning
 from agents import service
 from swarmloc import wire
 
@@ -422,6 +422,38 @@ def agent(
         raise Failure(str(exc)) from None
 
 
+@app.command()
+def router(
+    listen: list[str] = typer.Option(..., "--listen", callback=_endpoints,
+                                     help="Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)"),
+    connect: Optional[list[str]] = typer.Option(None, "--connect", callback=_endpoints,
+                                                help="another router to join (repeatable)"),
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="log at INFO"),
+):
+    """Run a Zenoh router for a swarm of agents in client mode (docs/deploy.md#peers-and-routers)."""
+    import zenoh
+
+    from agents.daemon import zenoh_message
+    from swarmloc import exit_on_sigterm
+
+    exit_on_sigterm()
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING,
+                        format="%(asctime)s router %(levelname)s %(message)s")
+    try:
+        session = zenoh.open(zenoh.Config.from_json5(wire.zenoh_config("router", listen, connect or ())))
+    except zenoh.ZError as exc:
+        raise Failure(f"cannot start a Zenoh router on {', '.join(listen)}: {zenoh_message(exc)}") from None
+    typer.echo(f"router up on {', '.join(listen)}" + (f", joined to {', '.join(connect)}" if connect else "")
+               + "; Ctrl-C or SIGTERM stops it", err=True)
+    try:
+        while True:  # timed: the exit SIGTERM raises needs the main thread awake
+            time.sleep(0.5)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        session.close()
+
+
 # A command of its own, not `agent install-service`: `agent` takes options, not subcommands.
 @app.command("install-service")
 def install_service(
@@ -654,41 +686,146 @@ def _status_line(s: dict) -> str:
             f"links up {up} down {len(s['links']) - up} faults {_faults_text(s)}")
 
 
+def _sources_text(sources: dict) -> str:
+    """A daemon's polled sources in a few words: a flight controller's link, a recording's progress."""
+    def one(name: str, st: dict) -> str:
+        if "link" in st:
+            return f"{name}: {st['link']}, tick {st['tick']}"
+        if "of" in st:
+            more = [f", {v} {k}" for k, v in st.items() if k not in ("frames", "of") and isinstance(v, int) and v]
+            return f"{name}: {st['frames']}/{st['of']} frames{''.join(more)}"
+        return f"{name}: {json.dumps(st)}"
+
+    return "\n".join(one(n, st) for n, st in sources.items()) or "-"
+
+
+def _agents_view(a: dict):
+    from rich.console import Group
+    from rich.table import Column, Table
+
+    rows = a["rows"]
+    answering = sum(r["reply_ms"] is not None for r in rows)
+    head = f"swarm {a['swarm']}: {answering}/{len(rows)} agents answer on swarmloc/{a['swarm']}/agent/*/stats"
+    # `peers` is shown once the daemons report it; today's stats do not.
+    peers = any("peers" in r["data"] for r in rows if r["data"])
+    t = Table("agent", "estimator", "tick", "ticks", "skipped", *(["peers"] if peers else []), "rejected",
+              "node drops", Column("sources", overflow="fold"), "alive", "heard", title="agents")
+    for r in rows:
+        d = r["data"]
+        alive = "yes" if r["alive"] else "[red]no[/]"
+        # Answering now: how long its answer took (its loop's latency); silent: since when.
+        if r["reply_ms"] is not None:
+            heard = f"{r['reply_ms']:.0f} ms"
+        else:
+            heard = "[red]never[/]" if r["heard_s"] is None else f"[red]{r['heard_s']:.1f} s ago[/]"
+        if d is None:  # a token, but never an answer: its loop is stuck, or it is not a swarmloc daemon
+            t.add_row(str(r["id"]), "-", "-", "-", "-", *(["-"] if peers else []), "-", "-", "-", alive, heard)
+            continue
+        t.add_row(str(r["id"]), d["algorithm"], str(d["k"]), str(d["ticks"]), str(d["ticks_skipped"]),
+                  *([", ".join(map(str, d.get("peers", []))) or "none"] if peers else []),
+                  str(sum(d["rejected"].values())), str(sum(d["node_drops"].values())),
+                  _sources_text(d.get("sources", {})), alive, heard)
+    extra = [f"unreadable reply on {key}: {why}" for key, why in a["unreadable"].items()]
+    return Group(head, t, *extra)
+
+
+def _agents_line(a: dict) -> str:
+    rows = a["rows"]
+
+    def one(r: dict) -> str:
+        if r["reply_ms"] is not None:
+            return f"{r['id']} {r['data']['algorithm']} tick {r['data']['k']}"
+        return f"{r['id']} silent" + ("" if r["heard_s"] is None else f" for {r['heard_s']:.1f}s")
+
+    shown = [one(r) for r in rows]
+    return f"agents answer {sum(r['reply_ms'] is not None for r in rows)}/{len(rows)}: {', '.join(shown)}"
+
+
+def _agents_rounds(ctl: ControlClient, watch: bool, interval: float):
+    """The agents' answers, round after round with --watch; an agent that stops answering keeps
+    its last row, with how long ago it was last heard."""
+    last: dict[int, tuple[dict, float]] = {}  # agent id: its last stats, and when they came
+    first = True
+    while True:
+        ans = ctl.agents()
+        if first and not (ans.stats or ans.alive or ans.unreadable):
+            raise NobodyAnswers(ctl.swarm, ctl.endpoints)
+        first = False
+        now = time.monotonic()
+        last.update((aid, (data, now)) for aid, data in ans.stats.items())
+        rows = []
+        for aid in sorted(set(last) | ans.alive):
+            data, heard = last.get(aid, (None, None))
+            rows.append({"id": aid, "data": data, "alive": aid in ans.alive,
+                         "reply_ms": ans.reply_s[aid] * 1e3 if aid in ans.reply_s else None,
+                         "heard_s": None if heard is None else now - heard})
+        yield {str(aid): data for aid, data in sorted(ans.stats.items())}, \
+            {"swarm": ctl.swarm, "rows": rows, "unreadable": ans.unreadable}
+        if not watch:
+            return
+        time.sleep(interval)
+
+
+def _show(rounds, view, line, as_json: bool, watch: bool) -> bool:
+    """Print each (raw, shown) round: the raw answer as JSON, a rich view, or with --watch off a
+    terminal one plain line; on a terminal --watch redraws in place. False after Ctrl-C."""
+    try:
+        if watch and not as_json and sys.stdout.isatty():
+            from rich.live import Live
+
+            with Live(console=_console(), refresh_per_second=4) as live:
+                for _, shown in rounds:
+                    live.update(view(shown))
+        else:
+            for raw, shown in rounds:
+                if as_json:
+                    typer.echo(json.dumps(raw))
+                elif watch:
+                    typer.echo(line(shown))
+                else:
+                    _console().print(view(shown))
+    except KeyboardInterrupt:
+        return False
+    return True
+
+
 @app.command()
 def status(swarm: str = SwarmOpt, connect: Optional[list[str]] = ConnectOpt,
-           as_json: bool = typer.Option(False, "--json", help="print the raw status as JSON"),
+           as_json: bool = typer.Option(False, "--json", help="print the raw status as JSON (from the agents: "
+                                        "their stats, keyed by agent id)"),
            watch: bool = typer.Option(False, "--watch", "-w", help="refresh until Ctrl-C or the run ends "
                                       "(not on a terminal: one plain line per refresh)"),
            interval: float = typer.Option(0.5, "--interval", callback=_in_range(0, above=True),
-                                          help="seconds between refreshes with --watch")):
-    """Show a running swarm: tick, agents alive, link table (SNR, delivery ratio, last heard), faults."""
-    with ControlClient(swarm, connect) as ctl:
-
-        def statuses():
-            yield ctl.request("status")
-            while watch:
-                time.sleep(interval)
+                                          help="seconds between refreshes with --watch"),
+           agents: bool = typer.Option(False, "--agents", help="ask the agents for their own counters, not netsim "
+                                       "(what status does when no netsim answers)")):
+    """Show a running swarm: tick, agents alive, link table (SNR, delivery ratio, last heard), faults.
+    Without netsim (agents on a direct radio), each agent's own counters."""
+    client = ControlClient(swarm, connect)
+    try:
+        with client as ctl:
+            first = None
+            if not agents:
                 try:
-                    yield ctl.request("status")
-                except NotRunning:  # the run ended under our eyes: the normal way out
-                    return
+                    first = ctl.request("status")
+                except NotRunning:
+                    pass  # no netsim: the agents may still answer for themselves
+            if first is None:
+                _show(_agents_rounds(ctl, watch, interval), _agents_view, _agents_line, as_json, watch)
+                return
 
-        try:
-            if watch and not as_json and sys.stdout.isatty():
-                from rich.live import Live
+            def statuses():
+                yield first, first
+                while watch:
+                    time.sleep(interval)
+                    try:
+                        s = ctl.request("status")
+                    except NotRunning:  # the run ended under our eyes: the normal way out
+                        return
+                    yield s, s
 
-                with Live(console=_console(), refresh_per_second=4) as live:
-                    for s in statuses():
-                        live.update(_status_view(s))
-            else:
-                for s in statuses():
-                    if as_json:
-                        typer.echo(json.dumps(s))
-                    elif watch:
-                        typer.echo(_status_line(s))
-                    else:
-                        _console().print(_status_view(s))
-        except KeyboardInterrupt:
-            return
-    if watch:
+            ended = _show(statuses(), _status_view, _status_line, as_json, watch)
+    except NotRunning:  # no session at all: nothing listens there
+        raise NobodyAnswers(swarm, client.endpoints) from None
+    if watch and ended:
         typer.echo("netsim is gone: the run has ended")

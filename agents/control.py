@@ -1,4 +1,5 @@
-"""Talk to a running swarm: find it by name, query its netsim's control queryable.
+"""Talk to a running swarm: find it by name, query its netsim's control queryable, or ask
+its agents themselves for their counters (a swarm without netsim has nothing else to ask).
 
 Each `swarmloc run` registers its swarm in a runtime file (endpoint, launcher pid, scenario,
 run directory), so `status`, `inject`, `faults` and `clear` reach it by its --swarm name
@@ -10,6 +11,8 @@ from __future__ import annotations
 import json
 import os
 import re
+import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import typer
@@ -32,6 +35,13 @@ class Failure(typer.TyperException):
 class NotRunning(Failure):
     def __init__(self, swarm: str, endpoints: list[str]):
         super().__init__(f"no swarm '{swarm}' is running on {', '.join(endpoints)} (start one with `swarmloc run`)")
+
+
+class NobodyAnswers(Failure):
+    """`status` asked netsim and then the agents, and heard from neither."""
+
+    def __init__(self, swarm: str, endpoints: list[str]):
+        super().__init__(f"no swarm '{swarm}' answers on {', '.join(endpoints)}: neither netsim nor any agent")
 
 
 # ------------------------------------------------------------------------------------ registry
@@ -113,8 +123,22 @@ class Registration:
 # ------------------------------------------------------------------------------------ control
 
 
+AGENTS_TIMEOUT = 1.0
+"""s an agents round waits for answers. It ends sooner when every agent Zenoh knows of has
+answered; an agent's loop answers between two inputs, within a tick when it is healthy."""
+
+
+@dataclass
+class AgentAnswers:
+    stats: dict[int, dict] = field(default_factory=dict)  # agent id: its stats
+    reply_s: dict[int, float] = field(default_factory=dict)  # agent id: s from asking to its answer
+    alive: set[int] = field(default_factory=set)  # agents whose liveliness token is there
+    unreadable: dict[str, str] = field(default_factory=dict)  # key: why its reply could not be decoded
+
+
 class ControlClient:
-    """A Zenoh client session to a swarm's netsim, for requests on its control queryable."""
+    """A Zenoh client session to a swarm: requests on its netsim's control queryable, and the
+    agents' own stats (a client of any one peer of the swarm, or of its router, reaches them all)."""
 
     def __init__(self, swarm: str, connect: list[str] | None = None):
         self.swarm = swarm
@@ -151,3 +175,32 @@ class ControlClient:
                 raise Failure(f"netsim refused {op}: {body.error}", 2)
             return body.data
         raise NotRunning(self.swarm, self.endpoints)
+
+    def agents(self, timeout: float = AGENTS_TIMEOUT) -> AgentAnswers:
+        """One round of asking every agent of the swarm: its stats (docs/wire.md, section 8) and
+        whether its liveliness token is there."""
+        from swarmloc.messages import Reply
+
+        keys = wire.Keys(self.swarm)
+        start = time.monotonic()
+        # Both queries go out before either is read: the round costs one timeout, not two.
+        stats = self.session.get(keys.stats("*"), timeout=timeout)
+        tokens = self.session.liveliness().get(keys.alive("*"), timeout=timeout)
+        out = AgentAnswers()
+        for r in stats:
+            if r.ok is None:
+                continue
+            try:
+                env = wire.decode(r.ok.payload.to_bytes(), expect=(Reply,))
+            except wire.WireError as exc:
+                out.unreadable[str(r.ok.key_expr)] = str(exc)
+                continue
+            out.stats[env.src] = env.body.data
+            out.reply_s[env.src] = time.monotonic() - start
+        for r in tokens:
+            try:
+                out.alive.add(wire.Keys.agent_of(str(r.ok.key_expr)))
+            except (AttributeError, ValueError):  # an error reply, or a token that names no agent
+                continue
+        return out
+
