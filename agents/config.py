@@ -97,6 +97,10 @@ class ZenohSession(_Strict):
                                             "router")
     listen: list[str] = Field(default_factory=list, description=f"endpoints to listen on, like {DEFAULT_ENDPOINT}")
     connect: list[str] = Field(default_factory=list, description="endpoints to connect to (peers or a router)")
+    gossip: bool = Field(False, description="peer: also dial the peers that the connected ones know of (Zenoh "
+                         "gossip). Off: two peers that dial each other can be left in a split session by a link "
+                         "outage close to Zenoh's lease (docs/deploy.md#peers-and-routers); each pair of peers "
+                         "must then be joined by one side's connect")
 
     @field_validator("listen", "connect")
     @classmethod
@@ -113,6 +117,8 @@ class ZenohSession(_Strict):
             raise _FieldError(("connect",), "a client needs an endpoint to connect to (its router)")
         if self.mode == "peer" and not (self.listen or self.connect):
             raise _FieldError(("listen",), "a peer needs endpoints to listen on or connect to (no scouting)")
+        if self.mode == "client" and self.gossip:
+            raise _FieldError(("gossip",), "gossip is for peers; a client reaches the swarm through its router")
         return self
 
 
@@ -204,6 +210,20 @@ class Outputs(_Strict):
     swarm: bool = Field(True, description="publish the estimate on swarmloc/<swarm>/agent/<id>/estimate")
     mavlink: MavlinkOutput | None = Field(None, description="send the estimate to the flight controller of the "
                                           "mavlink source; null: not")
+    log: Path | None = Field(None, description="append every estimate to this file as a JSON line (relative to this "
+                             "file's directory; docs/deploy.md#the-estimate-log); null: not")
+
+    @field_validator("log")
+    @classmethod
+    def _relative_to_file(cls, v, info: ValidationInfo):
+        return None if v is None else _base(info) / v.expanduser()
+
+
+class SwarmClock(_Strict):
+    epoch: FiniteFloat | None = Field(None, description="UNIX time (s, the system clock: keep it NTP- or "
+                                      "GPS-disciplined) of the swarm's tick 0: mavlink ticks end at epoch + k * tick "
+                                      "and a recording plays from it, on every agent alike; null: each agent counts "
+                                      "ticks from its own first sample")
 
 
 class AgentFileConfig(_Strict):
@@ -223,6 +243,7 @@ class AgentFileConfig(_Strict):
     sensors: list[Source] = Field(default_factory=lambda: [ZenohSource(kind="zenoh")], min_length=1,
                                   description="where sensor data comes from; default: the swarm's sensor key")
     outputs: Outputs = Field(default_factory=Outputs)
+    clock: SwarmClock = Field(default_factory=SwarmClock, description="the swarm clock ticks are numbered from")
     state_dir: Path | None = Field(None, description="directory of the checkpoint agent-<id>.state.npy (relative to "
                                    "this file's directory; created at start); null: no checkpoint")
 
@@ -311,6 +332,12 @@ class AgentFileConfig(_Strict):
         return None if self.state_dir is None else self.state_dir / f"agent-{self.id}.state.npy"
 
 
+def _utc(unix: float) -> str:
+    import datetime
+
+    return datetime.datetime.fromtimestamp(unix, datetime.timezone.utc).isoformat(timespec="milliseconds")
+
+
 def _problems(exc: ValidationError) -> list[str]:
     lines = []
     for err in exc.errors():
@@ -384,10 +411,12 @@ def daemon_config(cfg: AgentFileConfig) -> AgentConfig:
     sources and outputs."""
     z = cfg.zenoh
     return AgentConfig(swarm=cfg.swarm, connect=tuple(z.connect), listen=tuple(z.listen), mode=z.mode, direct=True,
+                       gossip=z.gossip and z.mode == "peer",
                        state_file=cfg.state_file,
                        sensor_keys=tuple(s.key or cfg.sensor_key for s in cfg.sensors if s.kind == "zenoh"),
                        sources=tuple(s for s in cfg.sensors if s.kind != "zenoh"),
-                       publish_swarm=cfg.outputs.swarm, mavlink_output=cfg.outputs.mavlink)
+                       publish_swarm=cfg.outputs.swarm, mavlink_output=cfg.outputs.mavlink,
+                       estimate_log=cfg.outputs.log, epoch=cfg.clock.epoch)
 
 
 def summary(cfg: AgentFileConfig, spec: NodeSpec) -> list[str]:
@@ -409,6 +438,8 @@ def summary(cfg: AgentFileConfig, spec: NodeSpec) -> list[str]:
     if o.mavlink is not None:
         m = o.mavlink
         outputs.append(f"mavlink {m.message}" + (f" {m.frame}" if m.message == "odometry" else "") + f" at {m.rate_hz:g} Hz")
+    if o.log is not None:
+        outputs.append(f"log {o.log}")
     gate = "off" if cfg.gate is None else f"{cfg.gate:g}, open after {cfg.gate_open_after}"
     rows = [
         ("id", str(cfg.id)), ("swarm", cfg.swarm),
@@ -416,8 +447,11 @@ def summary(cfg: AgentFileConfig, spec: NodeSpec) -> list[str]:
         ("model", cfg.model),
         ("prior", prior), ("landmarks", ", ".join(f"{m.id} {m.position}" for m in cfg.landmarks) or "none"),
         ("gate", gate),
-        ("zenoh", f"{z.mode}; listen {', '.join(z.listen) or '-'}; connect {', '.join(z.connect) or '-'}"),
+        ("zenoh", f"{z.mode}; listen {', '.join(z.listen) or '-'}; connect {', '.join(z.connect) or '-'}"
+                  + ("; gossip" if z.gossip else "")),
         ("sensors", "; ".join(map(source, cfg.sensors))), ("outputs", "; ".join(outputs) or "none"),
+        ("clock", "own: ticks from the first sample" if cfg.clock.epoch is None else
+         f"swarm: tick 0 at UNIX {cfg.clock.epoch:.3f} ({_utc(cfg.clock.epoch)})"),
         ("checkpoint", str(cfg.state_file) if cfg.state_file else "none"), ("node", spec.factory),
     ]
     return [f"{k:<11}{v}" for k, v in rows]

@@ -19,6 +19,7 @@ when configured, to the flight controller (docs/deploy.md#sensor-sources).
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import queue
@@ -50,6 +51,7 @@ class AgentConfig:
     connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
     listen: tuple[str, ...] = ()
     mode: str = "client"  # client of netsim's router in simulation; peer on a real swarm
+    gossip: bool | None = None  # peers find each other through those they connect to (None: Zenoh's way, on)
     direct: bool = False
     exit_on_stop: bool = True
     state_file: Path | None = None  # checkpoint: written every tick, resumed from at start
@@ -57,6 +59,8 @@ class AgentConfig:
     sources: tuple = ()  # polled sources: agents.config's MavlinkSource and FileSource entries
     publish_swarm: bool = True  # the estimate on the swarm's estimate key
     mavlink_output: object | None = None  # agents.config.MavlinkOutput: the estimate to the flight controller
+    estimate_log: Path | None = None  # every estimate appended as a JSON line (docs/deploy.md#the-estimate-log)
+    epoch: float | None = None  # the swarm clock: UNIX time of tick 0, which polled sources number ticks from
 
 
 class AgentDaemon:
@@ -81,6 +85,10 @@ class AgentDaemon:
         self.frame_source = None  # the source of the last sensor frame stepped on, and its time
         self.frame_t = 0.0
         self._last_checkpoint = -1e9
+        self.resumed = False  # from a checkpoint
+        self.peers: set[int] = set()  # direct mode: the agents whose liveliness tokens are there
+        self.frame_wall: float | None = None  # monotonic time of the last sensor frame stepped on
+        self._log = None  # the estimate log's file
         self._stop = threading.Event()
         # Node timers: lockstep arms and fires them in modelled time (the tick's t, before its
         # sensor frame), real time in wall seconds scaled to modelled ones by the clock's speed.
@@ -91,10 +99,15 @@ class AgentDaemon:
     # ---------------------------------------------------------------- zenoh plumbing
 
     def open(self) -> None:
-        conf = zenoh.Config.from_json5(wire.zenoh_config(self.cfg.mode, self.cfg.listen, self.cfg.connect))
+        conf = zenoh.Config.from_json5(wire.zenoh_config(self.cfg.mode, self.cfg.listen, self.cfg.connect,
+                                                         self.cfg.gossip))
         self.session = zenoh.open(conf)
         aid = self.node.id
         block = wire.publisher_options(zenoh)
+        # A physical radio loses frames, and a blocking put to a peer whose link is down would
+        # stall the loop (Zenoh blocks up to seconds before it gives the link up): direct radio
+        # frames are dropped on congestion instead, and UKF-DCL's timeouts cover the loss.
+        radio = wire.publisher_options(zenoh, lossy=self.cfg.direct)
         put = self.inbox.put
 
         def frame(kind):
@@ -109,19 +122,24 @@ class AgentDaemon:
             self.session.declare_subscriber(self.keys.clock, frame("clock")),
         ]
         if self.cfg.direct:
-            self._subs.append(self.session.declare_subscriber(self.keys.radio_rx(BROADCAST), frame("rx")))
+            # Remote only: our own broadcasts would come back to us on this key.
+            self._subs.append(self.session.declare_subscriber(self.keys.radio_rx(BROADCAST), frame("rx"),
+                                                              allowed_origin=zenoh.Locality.REMOTE))
             # No netsim to NACK frames to an agent that is gone: the swarm's liveliness tokens
             # tell the node who is there (history: the agents up before us as well).
             self._subs.append(self.session.liveliness().declare_subscriber(
                 self.keys.alive("*"), lambda s: put(("alive", str(s.key_expr), s.kind == zenoh.SampleKind.PUT)),
                 history=True))
         self._pub_tx = {} if self.cfg.direct else self.session.declare_publisher(self.keys.radio_tx(aid), **block)
-        self._pub_est = self.session.declare_publisher(self.keys.estimate(aid), **block)
+        self._pub_est = self.session.declare_publisher(self.keys.estimate(aid), **radio)
         self._pub_done = self.session.declare_publisher(self.keys.done(aid), **block)
-        self._block = block
+        self._radio_options = radio
         self._stats_key = self.keys.stats(aid)
         self._stats_q = self.session.declare_queryable(self._stats_key, lambda q: put(("stats", q, None)))
-        self.sources = sensor_sources.build(self.node, self.cfg.sources, self.cfg.mavlink_output)
+        self.sources = sensor_sources.build(self.node, self.cfg.sources, self.cfg.mavlink_output, self.cfg.epoch)
+        if self.cfg.estimate_log is not None:
+            self.cfg.estimate_log.parent.mkdir(parents=True, exist_ok=True)
+            self._log = open(self.cfg.estimate_log, "a", buffering=1)  # a line at a time: a kill loses none
         if self.cfg.mavlink_output is not None:
             self.fc = next(s for s in self.sources if isinstance(s, sensor_sources.FlightControllerTicks))
         # Declared last: once netsim sees the token, every subscription above is in place.
@@ -130,6 +148,8 @@ class AgentDaemon:
     def close(self) -> None:
         for source in self.sources:
             source.close()
+        if self._log is not None:
+            self._log.close()
         try:
             self._token.undeclare()
         except Exception:
@@ -150,6 +170,8 @@ class AgentDaemon:
                 "sensor_lag_ms_median": lag[len(lag) // 2] * 1e3 if lag else None,
                 "sensor_lag_ms_max": lag[-1] * 1e3 if lag else None,
                 "sent": self.sent, "consumed": self.consumed, "rejected": dict(self.rejected),
+                **({"peers": sorted(self.peers)} if self.cfg.direct else {}),
+                "since_frame_s": None if self.frame_wall is None else time.monotonic() - self.frame_wall,
                 "node_drops": dict(self.node.drops), **getattr(self.node, "stats", {}),
                 **({"sources": {s.name: s.stats() for s in self.sources}} if self.sources else {})}
 
@@ -288,6 +310,7 @@ class AgentDaemon:
             return self._reject("alive-unknown", key) or []
         if aid == self.node.id:
             return []
+        (self.peers.add if up else self.peers.discard)(aid)
         if up:
             log.info("agent %s: peer %s joined (liveliness)", self.node.id, aid)
             return self.node.peer_joined(aid)
@@ -306,12 +329,17 @@ class AgentDaemon:
         # The last tick's final estimate goes out before the node moves on, even when inputs
         # kept the queue from emptying (estimates are otherwise published when it is empty).
         self._publish_estimate()
+        if before < 0 and not self.resumed and frame.k > 0 and getattr(source, "start", None) == frame.k:
+            # A fresh agent's first tick on the swarm clock is where its prior holds, not tick 0:
+            # no ticks were missed before it.
+            prior = self.node.estimate()
+            self.node.resume(frame.k - 1, prior.mean, prior.cov)
         sends = fired + self.node.step(frame)
         if self.node.k == frame.k:
             self.ticks += 1
             if before >= 0:
                 self.ticks_skipped += max(0, frame.k - before - 1)
-            self.frame_source, self.frame_t = source, frame.t
+            self.frame_source, self.frame_t, self.frame_wall = source, frame.t, time.monotonic()
         self._checkpoint()
         return sends
 
@@ -351,6 +379,7 @@ class AgentDaemon:
             self.node.resume(-1, prior.mean, prior.cov)
             return False
         log.warning("agent %s resumed from its checkpoint of tick %d", self.node.id, k)
+        self.resumed = True
         return True
 
     def _radio(self, env: wire.Envelope) -> list:
@@ -374,7 +403,7 @@ class AgentDaemon:
             key = self.keys.radio_rx(BROADCAST if send.dst is None else send.dst)
             pub = self._pub_tx.get(key)
             if pub is None:
-                pub = self._pub_tx[key] = self.session.declare_publisher(key, **self._block)
+                pub = self._pub_tx[key] = self.session.declare_publisher(key, **self._radio_options)
             pub.put(data)
         else:
             self._pub_tx.put(data, attachment=wire.encode_send_time(time.perf_counter()))
@@ -388,6 +417,9 @@ class AgentDaemon:
         if sig == self._last_published or e.k < 0:
             return
         self._last_published = sig
+        if self._log is not None:
+            self._log.write(json.dumps({"k": e.k, "t": self.frame_t, "wall": time.time(), "mean": e.mean.tolist(),
+                                        "cov": e.cov.tolist()}) + "\n")
         if self.fc is not None:
             # On the FC's clock: the tick's own time when the FC's samples made the frame, else
             # the latest sample's (a frame from another source is stamped on another clock).

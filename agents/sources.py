@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import logging
 import math
-from collections import Counter
+import time
+from collections import Counter, deque
 from pathlib import Path
 
 import numpy as np
@@ -36,16 +37,54 @@ ALIGN_VELOCITY_STD = 0.5  # m/s
 ALIGN_ATTITUDE_STD = 0.05  # rad
 
 
+OFFSET_WINDOW = 10.0
+"""s of samples over which a flight controller's clock offset is the smallest (arrival - stamp):
+long enough to catch a sample that arrived at once, short enough to follow the FC crystal's
+drift (tens of ppm: a millisecond in 30 s)."""
+
+
 class SourceError(RuntimeError):
     """A source that cannot be opened at all (a serial device that is not there)."""
 
 
+def monotonic_of(unix: float) -> float:
+    """A UNIX time (the system clock, NTP- or GPS-disciplined) on the loop's monotonic clock."""
+    return unix - time.time() + time.monotonic()
+
+
+class ClockOffset:
+    """Offset of a flight controller's clock to the system clock: the smallest `arrival - stamp`
+    over the last OFFSET_WINDOW seconds (the sample that waited least in the link and in our
+    polling tells the offset best). A monotonic deque keeps the minimum in O(1) per sample."""
+
+    def __init__(self):
+        self.window: deque[tuple[float, float]] = deque()  # (arrival, arrival - stamp), values rising
+
+    def add(self, arrival: float, stamp: float) -> float:
+        v = arrival - stamp
+        while self.window and self.window[-1][1] >= v:
+            self.window.pop()
+        self.window.append((arrival, v))
+        while self.window[0][0] < arrival - OFFSET_WINDOW:
+            self.window.popleft()
+        return self.window[0][1]
+
+    def reset(self) -> None:
+        self.window.clear()
+
+
 class FilePlayer:
     """Agent `aid`'s frames of a run directory's sensors.npz, in order, each when its `t` is
-    due (`speed` recorded seconds per wall second from the first call), or one per call with
-    speed None (as fast as the loop takes them). Then nothing, said once."""
+    due (`speed` recorded seconds per wall second from the first call, or from the swarm clock's
+    `epoch`), or one per call with speed None (as fast as the loop takes them). Then nothing,
+    said once.
 
-    def __init__(self, path: Path, aid: int, speed: float | None):
+    With an epoch every agent of the swarm plays its part of the recording on the same
+    schedule, however late it started: frames already more than a tick overdue when the
+    player starts (a restart mid-replay) are skipped and counted, and the node inflates its
+    covariance over them as over any missed tick."""
+
+    def __init__(self, path: Path, aid: int, speed: float | None, epoch: float | None = None):
         from swarmloc.results import frames_from_arrays  # scipy: only an agent that replays pays for it
 
         with np.load(path, allow_pickle=False) as f:
@@ -55,7 +94,10 @@ class FilePlayer:
         self.path, self.aid, self.speed = path, aid, speed
         self.frames = [frames[aid] for frames in frames_from_arrays(arrays)]
         self.next = 0
-        self.start: float | None = None  # wall time of the first frame
+        self.skipped = 0
+        self.start: float | None = None  # monotonic time of the first frame
+        if epoch is not None and speed is not None:
+            self.start = monotonic_of(epoch)
 
     @property
     def name(self) -> str:
@@ -69,6 +111,14 @@ class FilePlayer:
             return []
         if self.start is None:
             self.start = now
+        if self.next == 0 and self.speed is not None and len(self.frames) > 1:
+            tick = (self.frames[1].t - self.frames[0].t) / self.speed
+            while self.next < len(self.frames) - 1 and self._due(self.next) < now - tick:
+                self.next += 1
+            if self.next:
+                self.skipped = self.next
+                log.warning("agent %s: %s: started %.1f s after the swarm clock's epoch; skipping %d overdue frames",
+                            self.aid, self.path, now - self.start, self.next)
         if self.speed is None:
             stop = self.next + 1
         else:
@@ -89,7 +139,7 @@ class FilePlayer:
         return max(0.0, self._due(self.next) - now)
 
     def stats(self) -> dict:
-        return {"frames": self.next, "of": len(self.frames)}
+        return {"frames": self.next, "of": len(self.frames), "skipped": self.skipped}
 
     def close(self) -> None:
         pass
@@ -111,10 +161,19 @@ class FlightControllerTicks:
     yaw rate as turn rate, with the configured stds. Tick 0 has dt = 0: no motion, as in a run.
     A uas-ins frame carries the tick's HIGHRES_IMU rows, dt their mean spacing; its tick 0
     carries the alignment from the FC's attitude, velocity and fix (or the prior's position).
+
+    With the swarm clock's `epoch` (a UNIX time) ticks are the swarm's instead: tick k ends at
+    epoch + k * tick on the system clock, which is the FC's clock plus an offset (ClockOffset,
+    followed as it drifts). The first frame is then the swarm tick the first driving sample
+    falls in, `start`, with tick 0's content: the node starts there from its prior.
     """
 
-    def __init__(self, fc, model: str, cfg, prior: tuple[np.ndarray, np.ndarray], aid: int):
+    def __init__(self, fc, model: str, cfg, prior: tuple[np.ndarray, np.ndarray], aid: int,
+                 epoch: float | None = None):
         self.fc, self.model, self.cfg, self.prior, self.aid = fc, model, cfg, prior, aid
+        self.epoch = epoch
+        self.offset = ClockOffset()
+        self.start: int | None = None  # the first frame's tick
         self.tick = cfg.tick
         self.planar = model != "uas-ins"
         self.base: float | None = None  # FC time of tick 0's end: tick k ends at base + k * tick
@@ -146,6 +205,7 @@ class FlightControllerTicks:
         from agents.mavlink import Attitude, GnssFix, Imu, Link, Odometry
 
         out = []
+        arrival = time.time()
         for s in self.fc.poll():
             if isinstance(s, Attitude):
                 self.attitude = s
@@ -159,9 +219,9 @@ class FlightControllerTicks:
                     self.velocity = s.velocity
                 self.height = float(s.position[2])
                 if self.planar:
-                    out += self._driving(s.t, self._planar_row(s))
+                    out += self._driving(s.t, self._planar_row(s), arrival)
             elif isinstance(s, Imu) and not self.planar:
-                out += self._driving(s.t, (s.t, [*s.rate, *s.specific_force]))
+                out += self._driving(s.t, (s.t, [*s.rate, *s.specific_force]), arrival)
         state = self.fc.state
         if state is Link.ALIVE and self._was is Link.LOST:
             # The FC logs the loss at WARNING and the return at INFO: the return is as much news.
@@ -173,7 +233,8 @@ class FlightControllerTicks:
         return max(0.0, self._next_poll - now)
 
     def stats(self) -> dict:
-        return {"tick": self.k, "link": self.fc.state.value, "received": dict(self.fc.received),
+        clock = {} if self.epoch is None or not self.offset.window else {"clock_offset_s": self.offset.window[0][1]}
+        return {"tick": self.k, "link": self.fc.state.value, **clock, "received": dict(self.fc.received),
                 "dropped": dict(self.fc.dropped), "unused": dict(self.counts)}
 
     def close(self) -> None:
@@ -193,20 +254,32 @@ class FlightControllerTicks:
         wz = float((ins.quat_to_dcm(q) @ rate)[2]) if rate is not None else math.nan
         return (float(s.velocity[0] * c + s.velocity[1] * sn), c, sn, wz)
 
-    def _driving(self, t: float, row) -> list[Sensors]:
+    def _driving(self, t: float, row, arrival: float) -> list[Sensors]:
         if row is None:
             return []
-        if self.base is None:
+        rebooted = self.base is not None and t < self.last_t - self.tick
+        if rebooted:
+            self.offset.reset()  # the old clock's offsets say nothing of the new one
+        if self.epoch is not None:
+            # FC time of the swarm's tick 0: re-anchored at every sample, so the FC's drift
+            # against the system clock never piles up into a tick.
+            self.base = self.epoch - self.offset.add(arrival, t)
+        if self.start is None:
             if not self.planar and self.attitude is None:
                 return []  # tick 0 of a UAS is its alignment, which needs the FC's attitude
-            self.base, self.last_t, self.imu_t = t, t, t
-            self.k = 1
+            if self.base is None:
+                self.base = t
+            self.start = max(0, math.ceil((t - self.base) / self.tick - 1e-9))
+            self.last_t, self.imu_t = t, t
+            self.k = self.start + 1
             return [self._tick0(row)]
-        if t < self.last_t - self.tick:
-            # The FC rebooted (its clock restarts at 0): ticks go on from here, on the new clock.
+        if rebooted:
+            # The FC's clock restarts at 0: ticks go on from here, on the new clock.
             log.warning("agent %s: the flight controller's clock went back from %.3f s to %.3f s; ticks continue "
                         "from %d", self.aid, self.last_t, t, self.k)
-            self.base, self.imu_t, self.last_t = t - (self.k - 0.5) * self.tick, None, t
+            if self.epoch is None:
+                self.base = t - (self.k - 0.5) * self.tick
+            self.imu_t, self.last_t = None, t
         self.last_t = max(self.last_t, t)
         k = max(self.k, math.ceil((t - self.base) / self.tick - 1e-9))
         out = []
@@ -241,12 +314,13 @@ class FlightControllerTicks:
         return Sensors(k, t, None, [], self._gnss(), imu)
 
     def _tick0(self, row) -> Sensors:
-        t = self.base
+        k = self.start
+        t = self.time_of(k)
         if self.planar:
             c = self.cfg
             _, cos, sin, wz = row
             odo = OdometryMsg(0.0, 0.0, math.atan2(sin, cos), c.speed_std, c.heading_std, 0.0, c.turn_rate_std)
-            return Sensors(0, t, odo, [], self._gnss())
+            return Sensors(k, t, odo, [], self._gnss())
         x, P = self.prior[0].copy(), self.prior[1].copy()
         if self.fix is not None:
             x[0:3] = self.fix.position
@@ -258,16 +332,18 @@ class FlightControllerTicks:
             P[sl, :] = 0.0
             P[:, sl] = 0.0
             P[sl, sl] = np.eye(3) * std**2
-        return Sensors(0, t, None, [], self._gnss(), align=AlignMsg(x, P))
+        return Sensors(k, t, None, [], self._gnss(), align=AlignMsg(x, P))
 
 
-def build(node, specs, output=None) -> list:
+def build(node, specs, output=None, epoch: float | None = None) -> list:
     """The polled sources of the configuration's `sensors` entries (mavlink, file), in order;
-    `output`: the configuration's outputs.mavlink, which the flight controller's link carries."""
+    `output`: the configuration's outputs.mavlink, which the flight controller's link carries;
+    `epoch`: the swarm clock's (UNIX time of tick 0), or None."""
     out = []
     for spec in specs:
         if spec.kind == "file":
-            out.append(FilePlayer(spec.path, node.id, None if spec.speed == "as_fast_as_possible" else spec.speed))
+            out.append(FilePlayer(spec.path, node.id, None if spec.speed == "as_fast_as_possible" else spec.speed,
+                                  epoch))
         elif spec.kind == "mavlink":
             from agents.mavlink import FlightController, mavlink
 
@@ -277,7 +353,7 @@ def build(node, specs, output=None) -> list:
                                       origin=tuple(spec.origin) if spec.origin else None, **_output_args(output, mavlink))
             except Exception as exc:  # pymavlink raises what the OS says (serial, TCP), untyped
                 raise SourceError(f"cannot open the flight controller at {spec.url}: {exc}") from None
-            out.append(FlightControllerTicks(fc, node.model.name, spec, (e.mean, e.cov), node.id))
+            out.append(FlightControllerTicks(fc, node.model.name, spec, (e.mean, e.cov), node.id, epoch))
     return out
 
 

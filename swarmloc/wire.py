@@ -400,16 +400,19 @@ class Keys:
 ZENOH_MAX_MESSAGE_BYTES = 4 * MAX_WIRE_BYTES
 
 
-def zenoh_config(mode: str, listen: list[str] = (), connect: list[str] = ()) -> str:
+def zenoh_config(mode: str, listen: list[str] = (), connect: list[str] = (), gossip: bool | None = None) -> str:
     """JSON5 for zenoh.Config.from_json5: no multicast scouting, bounded message size.
 
-    Scouting is off so a test's sessions never find a stranger's on the same machine.
+    Scouting is off so a test's sessions never find a stranger's on the same machine. Gossip
+    (a peer learns the others from those it connects to, and dials them) is on for peers
+    unless `gossip` says otherwise.
     """
     cfg = {
         "mode": mode,
         "listen": {"endpoints": list(listen)},
         "connect": {"endpoints": list(connect)},
-        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": mode == "peer"}},
+        "scouting": {"multicast": {"enabled": False},
+                     "gossip": {"enabled": mode == "peer" if gossip is None else gossip}},
         "transport": {"link": {"rx": {"max_message_size": ZENOH_MAX_MESSAGE_BYTES}}},
     }
     return json.dumps(cfg)
@@ -422,11 +425,13 @@ def bounded(payload) -> bytes | None:
     return payload.to_bytes() if len(payload) <= MAX_WIRE_BYTES else None
 
 
-def publisher_options(zenoh) -> dict:
+def publisher_options(zenoh, lossy: bool = False) -> dict:
     """Options of every swarmloc publisher, given the zenoh module (this module imports none).
     Reliable and blocking: with Zenoh's default (drop) a burst of small frames loses a quarter
-    of them, and loss is the radio model's to decide, not the transport's."""
-    return dict(congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
+    of them, and loss is the radio model's to decide, not the transport's. `lossy`: a physical
+    radio's frames (direct mode), where loss is the network's and blocking would stall the sender."""
+    cc = zenoh.CongestionControl.DROP if lossy else zenoh.CongestionControl.BLOCK
+    return dict(congestion_control=cc, reliability=zenoh.Reliability.RELIABLE)
 
 
 # Attachments (docs/wire.md, "Attachments"). An agent stamps each radio/tx frame with its send
