@@ -133,7 +133,7 @@ def test_kill_and_restart_agent(cli, tmp_path):
     """Killing an agent mid-run: the others keep estimating, the restarted agent rejoins from
     its checkpoint, nothing hangs."""
     out = tmp_path / "run"
-    run = cli.start_run(str(scenario_file(tmp_path, duration=80.0, speed=4.0)), out)
+    run = cli.start_run(str(scenario_file(tmp_path, duration=50.0, speed=4.0)), out)
     cli.wait_tick(20, run)
     ns = NetsimClient(cli.endpoint, cli.swarm)
     try:

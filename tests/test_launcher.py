@@ -53,7 +53,7 @@ def test_force_empties_an_old_run_directory(tmp_path):
 @pytest.mark.slow
 def test_a_crashed_agent_is_reported_and_the_run_completes(cli, tmp_path):
     out = tmp_path / "run"
-    run = cli.start_run(str(scenario_file(tmp_path, 300.0)), out)
+    run = cli.start_run(str(scenario_file(tmp_path, 150.0)), out)
     cli.wait_tick(30, run)
     os.kill(agent_pid(cli.swarm, 3), signal.SIGKILL)
     stdout, stderr = run.communicate(timeout=300)
@@ -70,7 +70,7 @@ def test_a_crashed_agent_is_reported_and_the_run_completes(cli, tmp_path):
 @pytest.mark.slow
 def test_restart_crashed_brings_the_agent_back_from_its_checkpoint(cli, tmp_path):
     out = tmp_path / "run"
-    run = cli.start_run(str(scenario_file(tmp_path, 300.0)), out, "--restart-crashed")
+    run = cli.start_run(str(scenario_file(tmp_path, 150.0)), out, "--restart-crashed")
     cli.wait_tick(30, run)
     os.kill(agent_pid(cli.swarm, 3), signal.SIGKILL)
     stdout, stderr = run.communicate(timeout=300)
