@@ -126,6 +126,10 @@ class ZenohSource(_Strict):
     kind: Literal["zenoh"]
     key: str | None = Field(None, description="key expression the sensor frames (docs/wire.md) arrive on; null: "
                             "swarmloc/<swarm>/agent/<id>/sensors")
+    role: Literal["frames", "measurements"] = Field("frames", description="frames: whole ticks the node steps on; "
+                                                    "measurements: their ranges, range-bearings, relative positions, "
+                                                    "target ranges, fix and pseudoranges join the next frame of "
+                                                    "another source (docs/deploy.md#measurements-from-another-source)")
 
     @field_validator("key")
     @classmethod
@@ -302,6 +306,15 @@ class AgentFileConfig(_Strict):
 
     @field_validator("sensors")
     @classmethod
+    def _frames_to_merge_into(cls, v):
+        measurements = [i for i, s in enumerate(v) if s.kind == "zenoh" and s.role == "measurements"]
+        if measurements and len(measurements) == len(v):
+            raise _FieldError((measurements[0], "role"), "measurements join the frames of another source, and no "
+                              "source gives frames (a mavlink or file source, or a zenoh one with role: frames)")
+        return v
+
+    @field_validator("sensors")
+    @classmethod
     def _recorded_agent(cls, v, info: ValidationInfo):
         aid = info.data.get("id")
         for i, s in enumerate(v):
@@ -413,7 +426,10 @@ def daemon_config(cfg: AgentFileConfig) -> AgentConfig:
     return AgentConfig(swarm=cfg.swarm, connect=tuple(z.connect), listen=tuple(z.listen), mode=z.mode, direct=True,
                        gossip=z.gossip and z.mode == "peer",
                        state_file=cfg.state_file,
-                       sensor_keys=tuple(s.key or cfg.sensor_key for s in cfg.sensors if s.kind == "zenoh"),
+                       sensor_keys=tuple(s.key or cfg.sensor_key for s in cfg.sensors
+                                         if s.kind == "zenoh" and s.role == "frames"),
+                       measurement_keys=tuple(s.key or cfg.sensor_key for s in cfg.sensors
+                                              if s.kind == "zenoh" and s.role == "measurements"),
                        sources=tuple(s for s in cfg.sensors if s.kind != "zenoh"),
                        publish_swarm=cfg.outputs.swarm, mavlink_output=cfg.outputs.mavlink,
                        estimate_log=cfg.outputs.log, epoch=cfg.clock.epoch)
@@ -429,7 +445,7 @@ def summary(cfg: AgentFileConfig, spec: NodeSpec) -> list[str]:
 
     def source(s) -> str:
         if s.kind == "zenoh":
-            return f"zenoh {s.key or cfg.sensor_key}"
+            return f"zenoh {s.key or cfg.sensor_key}" + (" (measurements)" if s.role == "measurements" else "")
         if s.kind == "mavlink":
             return f"mavlink {s.url}" + (f" at {s.baud} baud" if s.baud else "")
         return f"file {s.path} " + ("as fast as possible" if s.speed == "as_fast_as_possible" else f"at {s.speed:g}x")

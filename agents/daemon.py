@@ -19,6 +19,7 @@ when configured, to the flight controller (docs/deploy.md#sensor-sources).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import os
@@ -41,6 +42,13 @@ from swarmloc.node import Node, NodeSpec, Outbox, Timers, estimate_of
 
 log = logging.getLogger("swarmloc.agent")
 
+MAX_PENDING = 256
+"""Measurement frames held for the next frame at most; more are dropped and counted (a driver
+publishing while the frame source is silent must not grow the agent without bound)."""
+MAX_MERGED = 64  # measurements of one kind in a frame: the wire's limit (swarmloc.messages.Sensors)
+MERGED_LISTS = ("ranges", "relpos", "targets", "rb", "landmarks")
+MERGED_SINGLE = ("gnss", "pseudoranges")
+
 BROADCAST = "all"
 NETSIM_ID = 0  # sender id of netsim's own frames (clock, sensors, NACKs)
 
@@ -56,6 +64,7 @@ class AgentConfig:
     exit_on_stop: bool = True
     state_file: Path | None = None  # checkpoint: written every tick, resumed from at start
     sensor_keys: tuple[str, ...] | None = None  # keys of ready sensor frames; None: the swarm's agent/<id>/sensors
+    measurement_keys: tuple[str, ...] = ()  # keys of partial frames whose measurements join the next frame
     sources: tuple = ()  # polled sources: agents.config's MavlinkSource and FileSource entries
     publish_swarm: bool = True  # the estimate on the swarm's estimate key
     mavlink_output: object | None = None  # agents.config.MavlinkOutput: the estimate to the flight controller
@@ -88,6 +97,8 @@ class AgentDaemon:
         self.resumed = False  # from a checkpoint
         self.peers: set[int] = set()  # direct mode: the agents whose liveliness tokens are there
         self.frame_wall: float | None = None  # monotonic time of the last sensor frame stepped on
+        self.pending: list[Sensors] = []  # measurement frames waiting for the next frame
+        self.merged: Counter[str] = Counter()  # measurements merged into frames, and dropped, by kind
         self._log = None  # the estimate log's file
         self._stop = threading.Event()
         # Node timers: lockstep arms and fires them in modelled time (the tick's t, before its
@@ -118,6 +129,8 @@ class AgentDaemon:
             # Sensor frames carry no attachment: the slot holds their arrival, for the lag stats.
             *(self.session.declare_subscriber(key, lambda s: put(("sensors", wire.bounded(s.payload), time.monotonic())))
               for key in dict.fromkeys(sensor_keys)),
+            *(self.session.declare_subscriber(key, lambda s: put(("measurements", wire.bounded(s.payload), None)))
+              for key in dict.fromkeys(self.cfg.measurement_keys)),
             self.session.declare_subscriber(self.keys.radio_rx(aid), frame("rx")),
             self.session.declare_subscriber(self.keys.clock, frame("clock")),
         ]
@@ -173,7 +186,8 @@ class AgentDaemon:
                 **({"peers": sorted(self.peers)} if self.cfg.direct else {}),
                 "since_frame_s": None if self.frame_wall is None else time.monotonic() - self.frame_wall,
                 "node_drops": dict(self.node.drops), **getattr(self.node, "stats", {}),
-                **({"sources": {s.name: s.stats() for s in self.sources}} if self.sources else {})}
+                **({"sources": {s.name: s.stats() for s in self.sources}} if self.sources else {}),
+                **({"merged": dict(self.merged)} if self.cfg.measurement_keys else {})}
 
     def _reply_stats(self, query) -> None:
         # Reply on our own key, not the query's: a wildcard query must not consolidate agents away.
@@ -283,6 +297,14 @@ class AgentDaemon:
         if kind == "sensors":
             env = self._envelope(kind, data, (Sensors,))
             return [] if env is None else self._step(env.body, None, attachment)
+        if kind == "measurements":
+            env = self._envelope(kind, data, (Sensors,))
+            if env is not None:
+                if len(self.pending) >= MAX_PENDING:
+                    self.merged["dropped-overflow"] += 1
+                else:
+                    self.pending.append(env.body)
+            return None
         if not self.cfg.direct:
             # netsim numbers what it delivers to us 1, 2, 3... on one publisher: anything else on
             # our key is not a delivery (a copy, a replay, a stranger) and must not be counted
@@ -325,6 +347,8 @@ class AgentDaemon:
             fired = self._fire_timers(self.model_t)
         elif arrival is not None and len(self.sensor_lag) < 100_000:
             self.sensor_lag.append(time.monotonic() - arrival)
+        if self.pending:
+            frame = self._merge(frame)
         before = self.node.k
         # The last tick's final estimate goes out before the node moves on, even when inputs
         # kept the queue from emptying (estimates are otherwise published when it is empty).
@@ -342,6 +366,34 @@ class AgentDaemon:
             self.frame_source, self.frame_t, self.frame_wall = source, frame.t, time.monotonic()
         self._checkpoint()
         return sends
+
+    def _merge(self, frame: Sensors) -> Sensors:
+        """The frame with the measurements that arrived since the last one (docs/deploy.md,
+        "Measurements from another source"): lists joined up to the wire's 64 each, a fix or
+        pseudoranges taken where the frame has none; the partial frames' tick, time and
+        motion data are not used."""
+        lists = {f: list(getattr(frame, f)) for f in MERGED_LISTS}
+        single = {f: getattr(frame, f) for f in MERGED_SINGLE}
+        for part in self.pending:
+            for f in MERGED_LISTS:
+                for m in getattr(part, f):
+                    if len(lists[f]) < MAX_MERGED:
+                        lists[f].append(m)
+                        self.merged[f] += 1
+                    else:
+                        self.merged[f"{f}-dropped-full"] += 1
+            for f in MERGED_SINGLE:
+                if getattr(part, f) is not None:
+                    if single[f] is None:
+                        single[f] = getattr(part, f)
+                        self.merged[f] += 1
+                    else:
+                        self.merged[f"{f}-dropped-taken"] += 1
+            for f in ("odometry", "imu", "align"):
+                if getattr(part, f) is not None:
+                    self.merged[f"{f}-ignored"] += 1
+        self.pending = []
+        return dataclasses.replace(frame, **lists, **single)
 
     def _checkpoint(self) -> None:
         # A file write costs ~2 ms here, a fifth of a lockstep tick: at most every 0.2 s of wall
@@ -465,6 +517,8 @@ def serve(node: Node, cfg: AgentConfig) -> None:
     log.info("agent %s up (%s mode, connect %s, listen %s, %s radio); waiting for sensor frames on %s, radio frames "
              "on %s, clock on %s", node.id, cfg.mode, ", ".join(cfg.connect), ", ".join(cfg.listen) or "-",
              "direct" if cfg.direct else "netsim", ", ".join(inputs) or "-", ", ".join(radio), keys.clock)
+    if cfg.measurement_keys:
+        log.info("agent %s: measurements on %s join the next sensor frame", node.id, ", ".join(cfg.measurement_keys))
     if len(inputs) > 1:
         log.warning("agent %s: %d sensor sources (%s); frames are not merged: each must carry whole ticks, and the "
                     "node steps on whichever tick comes next (docs/deploy.md#sensor-sources)", node.id, len(inputs),

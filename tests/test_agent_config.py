@@ -46,10 +46,11 @@ def swarmloc(*args, cwd=None):
 def test_the_documented_example_loads():
     cfg = load(EXAMPLE)
     assert (cfg.id, cfg.swarm, cfg.estimator.name, cfg.model) == (3, "field", "ukf-dcl", "planar-speed-heading")
-    assert [s.kind for s in cfg.sensors] == ["zenoh", "mavlink"]
+    assert [s.kind for s in cfg.sensors] == ["mavlink", "zenoh"]
     assert cfg.outputs.mavlink.rate_hz == 10 and cfg.outputs.mavlink.frame == "local_ned"
     d = daemon_config(cfg)
-    assert (d.swarm, d.mode, d.direct) == ("field", "peer", True)
+    assert (d.swarm, d.mode, d.direct, d.gossip) == ("field", "peer", True, False)
+    assert d.sensor_keys == () and d.measurement_keys == ("drivers/uwb/3",) and d.epoch == 1796083200.0
     assert d.listen == ("tcp/0.0.0.0:7447",) and d.connect == ("tcp/192.168.10.1:7447", "tcp/192.168.10.2:7447")
     assert d.state_file == Path("/var/lib/swarmloc/agent-3.state.npy")
 
@@ -109,6 +110,12 @@ def test_a_config_builds_its_estimators_node(estimator, changes, node_class):
     (changed(sensors=[{"kind": "zenoh"}]), "outputs.mavlink: needs a sensors entry of kind mavlink"),
     (changed(outputs={"mavlink": {"message": "vision_position_estimate", "frame": "local_frd"}}),
      "outputs.mavlink.frame: only ODOMETRY carries a frame"),
+    (changed(sensors=[{"kind": "zenoh", "role": "measurements"}], outputs={}),
+     "sensors.0.role: measurements join the frames of another source"),
+    (changed(sensors=[{"kind": "zenoh", "role": "odometry"}]), "sensors.0.role: Input should be 'frames' or"),
+    (changed(zenoh={"mode": "client", "connect": ["tcp/10.0.0.1:7447"], "gossip": True}),
+     "zenoh.gossip: gossip is for peers"),
+    (changed(clock={"epoch": float("inf")}), "clock.epoch: Input should be a finite number"),
 ], ids=lambda v: v.split(":")[0] if isinstance(v, str) else None)
 def test_a_bad_config_names_the_field(tmp_path, data, field):
     assert any(line.startswith(field) for line in problems(data, tmp_path)), problems(data, tmp_path)
@@ -124,10 +131,11 @@ def test_relative_paths_are_the_files_directory(tmp_path):
     np.savez(tmp_path / "run" / "sensors.npz", ids=np.array([3]))
     path = tmp_path / "agent.yaml"
     path.write_text(yaml.safe_dump(changed(sensors=[{"kind": "file", "path": "run/sensors.npz", "speed": 2}],
-                                           outputs={"swarm": True}, state_dir="state")))
+                                           outputs={"swarm": True, "log": "est.jsonl"}, state_dir="state")))
     cfg = load(path)
     assert cfg.sensors[0].path == tmp_path / "run" / "sensors.npz"
     assert daemon_config(cfg).state_file == tmp_path / "state" / "agent-3.state.npy"
+    assert daemon_config(cfg).estimate_log == tmp_path / "est.jsonl"
 
 
 def test_check_config_prints_the_summary():
@@ -138,8 +146,10 @@ def test_check_config_prints_the_summary():
     assert rows["estimator"] == "ukf-dcl (max_chain: 4)"
     assert rows["prior"] == "position [12.5, -4.0] +- 0.5 m"
     assert rows["zenoh"] == "peer; listen tcp/0.0.0.0:7447; connect tcp/192.168.10.1:7447, tcp/192.168.10.2:7447"
-    assert rows["sensors"] == "zenoh swarmloc/field/agent/3/sensors; mavlink /dev/ttyACM0 at 921600 baud"
-    assert rows["outputs"] == "swarm swarmloc/field/agent/3/estimate; mavlink odometry local_ned at 10 Hz"
+    assert rows["sensors"] == "mavlink /dev/ttyACM0 at 921600 baud; zenoh drivers/uwb/3 (measurements)"
+    assert rows["outputs"] == ("swarm swarmloc/field/agent/3/estimate; mavlink odometry local_ned at 10 Hz; "
+                               "log /var/lib/swarmloc/estimates-3.jsonl")
+    assert rows["clock"] == "swarm: tick 0 at UNIX 1796083200.000 (2026-12-01T00:00:00.000+00:00)"
     assert rows["node"] == "swarmloc.estimators.ukf_dcl:UkfDclNode"
     assert "not" not in rows  # every field is read
 

@@ -132,6 +132,39 @@ def test_flight_controller_round_trip(tmp_path, agents, swarm, message):
         assert on_swarm == []
 
 
+def test_flight_controller_ticks_on_the_swarm_clock(tmp_path, agents):
+    """Two agents, each with its own FC booted at a different time, number their ticks from
+    the swarm clock's epoch (100 s ago): an estimate of tick k comes out just after
+    epoch + k * tick on the system clock, on both, and a fresh agent starts at its first tick
+    from its prior, not inflated for the thousand ticks before it."""
+    epoch, tick = time.time() - 100.0, 0.1
+    ports = [udp_port(), udp_port()]
+    started = [agents(tmp_path, id=aid, prior={"position": [20.0, 0.0], "std": 0.05}, clock={"epoch": epoch},
+                      sensors=[{"kind": "mavlink", "url": f"udpin:127.0.0.1:{port}", "tick": tick}])
+               for aid, port in zip((1, 2), ports)]
+    for a in started:
+        a.wait_for("INFO agent")
+    sessions = [a.session() for a in started]
+    got = [[], []]
+    subs = [s.declare_subscriber(a.keys.estimate(aid), lambda x, g=g: g.append(
+        (time.time(), wire.decode(x.payload.to_bytes(), expect=(EstimateMsg,)).body)))
+        for s, a, aid, g in zip(sessions, started, (1, 2), got)]
+    with FakeFlightController(ports[0]):
+        time.sleep(1.3)  # the second FC boots 1.3 s after the first: its clock reads 1.3 s less
+        with FakeFlightController(ports[1]):
+            time.sleep(2.0)
+    for a in started:
+        assert a.stop() in (0, 143)
+    for s in sessions:
+        s.close()
+    for aid, estimates_ in zip((1, 2), got):
+        assert len(estimates_) >= 15, (aid, len(estimates_))
+        first = estimates_[0][1]
+        assert first.k >= 1000 and first.cov[0, 0] == pytest.approx(0.05**2)
+        # The start tick goes out on its first sample; each later one after it ends, when a
+        # sample of the next tick completes it (20 ms at 50 Hz), then the step.
+        late = np.array([at - (epoch + e.k * tick) for at, e in estimates_[1:]])
+        assert 0.0 < np.median(late) < 0.1 and late.min() > -0.01 and late.max() < 0.3, (aid, late)
 def test_missing_flight_controller(tmp_path, agents):
     url = f"udpin:127.0.0.1:{udp_port()}"
     agent = agents(tmp_path, sensors=[{"kind": "mavlink", "url": url}], outputs={"mavlink": {}})
@@ -199,3 +232,92 @@ def test_garbage_on_a_zenoh_source_is_counted_and_dropped(tmp_path, agents):
         assert stats["ticks"] == 3 and stats["rejected"]["malformed"] == 3, stats
         assert agent.proc.poll() is None
     assert agent.stop() in (0, 143)
+
+
+def recorder():
+    """A dead-reckoning node that keeps every frame it is handed (the daemon's merging, sans I/O)."""
+    from swarmloc.estimators.il import IndependentNode
+
+    class Recorder(IndependentNode):
+        def step(self, frame):
+            self.frames.append(frame)
+            return super().step(frame)
+
+    node = Recorder(1, np.zeros(2), np.eye(2))
+    node.frames = []
+    return node
+
+
+def test_measurements_join_the_next_frame():
+    """Partial frames from a measurements source: their ranges (up to the wire's 64), the first
+    fix and pseudoranges join the next whole frame; their motion data and tick are not used,
+    and whatever does not fit is counted."""
+    from agents.daemon import AgentConfig, AgentDaemon
+    from swarmloc.messages import GnssMsg, ImuMsg, OdometryMsg, RangeMsg, Sensors
+
+    node = recorder()
+    daemon = AgentDaemon(node, AgentConfig(direct=True, measurement_keys=("drivers/uwb",), publish_swarm=False))
+    odo = OdometryMsg(0.1, 1.0, 0.0, 0.1, 0.01)
+    part = lambda k, ranges, gnss=None, **kw: wire.encode(Sensors(k, 9.9, None, ranges, gnss, **kw), 7, k)
+    r = lambda target: RangeMsg(target, 10.0 + target, 0.1)
+    daemon._handle("measurements", part(50, [r(2), r(3)]), None)
+    daemon._handle("measurements", part(3, [r(4)], GnssMsg(np.array([1.0, 2.0]), 0.5)), None)
+    daemon._handle("measurements", part(4, [r(5)] * 63, GnssMsg(np.array([9.0, 9.0]), 0.5),
+                                        imu=ImuMsg(0.01, np.zeros((1, 6)))), None)
+    daemon._handle("measurements", b"\x00garbage", None)
+    daemon._step(Sensors(0, 0.0, odo, [r(9)]), None, None)
+    daemon._step(Sensors(1, 0.1, odo, []), None, None)
+    first, second = node.frames
+    assert [m.target for m in first.ranges] == [9, 2, 3, 4] + [5] * 60
+    assert (first.k, first.t, first.odometry) == (0, 0.0, odo)  # the whole frame's own
+    np.testing.assert_array_equal(first.gnss.position, [1.0, 2.0])
+    assert second.ranges == [] and second.gnss is None  # merged once
+    assert daemon.merged == {"ranges": 63, "ranges-dropped-full": 3, "gnss": 1, "gnss-dropped-taken": 1,
+                             "imu-ignored": 1}
+    assert daemon.rejected["malformed"] == 1
+
+
+def test_a_measurements_source_feeds_a_running_agent(tmp_path, agents):
+    """A driver publishing ranges on its own key while a recording gives the frames: the agent
+    steps on every frame and counts the ranges merged into them."""
+    sc = load_scenario("wang2019")
+    sc = sc.model_copy(update={"clock": sc.clock.model_copy(update={"duration": 10.0})})
+    record = InProcessRunner(Simulation(sc), make_nodes("il", sc)).run()
+    np.savez(tmp_path / "sensors.npz", **record.sensor_arrays())
+    key = f"drivers/{uuid.uuid4().hex[:6]}/uwb"
+    agent = agents(tmp_path, sensors=[{"kind": "file", "path": "sensors.npz", "speed": 4.0},
+                                      {"kind": "zenoh", "key": key, "role": "measurements"}])
+    agent.wait_for("join the next sensor frame")
+    from swarmloc.messages import RangeMsg, Sensors
+
+    with agent.session() as session:
+        pub = session.declare_publisher(key, **wire.publisher_options(zenoh))
+        stats = {}
+
+        def poll():
+            pub.put(wire.encode(Sensors(0, 0.0, None, [RangeMsg(2, 5.0, 0.1)]), 1, 0))
+            replies = list(session.get(agent.keys.stats(1), timeout=2.0))
+            stats.update(wire.decode(replies[0].ok.payload.to_bytes()).body.data if replies else {})
+            return stats.get("merged", {}).get("ranges", 0) >= 5
+
+        wait_until(poll, 10)
+        assert stats["merged"]["ranges"] >= 5 and stats["ticks"] > 0, stats
+        assert stats["rejected"] == {}, stats
+    assert agent.stop() in (0, 143)
+
+
+def test_a_recording_on_the_swarm_clock_skips_what_is_overdue(tmp_path):
+    """An agent that starts (or restarts) 3.2 s after the swarm clock's epoch plays the frame
+    that is due now, not the 3 s it missed: the frames more than a tick overdue are skipped
+    and counted, and the next comes on the common schedule."""
+    from agents.sources import FilePlayer
+
+    sc = load_scenario("wang2019")
+    sc = sc.model_copy(update={"clock": sc.clock.model_copy(update={"duration": 10.0})})
+    record = InProcessRunner(Simulation(sc), make_nodes("il", sc)).run()
+    np.savez(tmp_path / "sensors.npz", **record.sensor_arrays())
+    player = FilePlayer(tmp_path / "sensors.npz", 1, 1.0, epoch=time.time() - 3.2)
+    now = time.monotonic()
+    assert [f.k for f in player.ready(now)] == [6]  # t = 3.0 s is due; 0 .. 2.5 s are past
+    assert player.skipped == 6 and player.stats() == {"frames": 7, "of": 21, "skipped": 6}
+    assert player.wait(now) == pytest.approx(0.3, abs=0.02)
