@@ -22,13 +22,14 @@ import argparse
 import dataclasses
 import json
 import logging
+import math
 import os
 import queue
 import re
 import sys
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -96,6 +97,7 @@ class AgentDaemon:
         self._last_checkpoint = -1e9
         self.resumed = False  # from a checkpoint
         self.peers: set[int] = set()  # direct mode: the agents whose liveliness tokens are there
+        self.peer_delay: dict[int, deque] = {}  # direct mode: s from a peer's send (its clock) to ours, recent frames
         self.frame_wall: float | None = None  # monotonic time of the last sensor frame stepped on
         self.pending: list[Sensors] = []  # measurement frames waiting for the next frame
         self.merged: Counter[str] = Counter()  # measurements merged into frames, and dropped, by kind
@@ -183,7 +185,9 @@ class AgentDaemon:
                 "sensor_lag_ms_median": lag[len(lag) // 2] * 1e3 if lag else None,
                 "sensor_lag_ms_max": lag[-1] * 1e3 if lag else None,
                 "sent": self.sent, "consumed": self.consumed, "rejected": dict(self.rejected),
-                **({"peers": sorted(self.peers)} if self.cfg.direct else {}),
+                **({"peers": sorted(self.peers), "peer_delay_ms": {
+                    a: {"min": min(d) * 1e3, "median": float(np.median(d)) * 1e3}
+                    for a, d in sorted(self.peer_delay.items()) if d}} if self.cfg.direct else {}),
                 "since_frame_s": None if self.frame_wall is None else time.monotonic() - self.frame_wall,
                 "node_drops": dict(self.node.drops), **getattr(self.node, "stats", {}),
                 **({"sources": {s.name: s.stats() for s in self.sources}} if self.sources else {}),
@@ -321,6 +325,10 @@ class AgentDaemon:
         env = self._envelope("radio", data)
         if env is None:
             return []
+        if self.cfg.direct:
+            sent = wire.decode_send_time(attachment.to_bytes() if attachment is not None else None)
+            if sent is not None and math.isfinite(sent) and env.src in self.peers:
+                self.peer_delay.setdefault(env.src, deque(maxlen=256)).append(time.time() - sent)
         return self._radio(env)
 
     def _membership(self, key: str, up: bool) -> list:
@@ -456,7 +464,8 @@ class AgentDaemon:
             pub = self._pub_tx.get(key)
             if pub is None:
                 pub = self._pub_tx[key] = self.session.declare_publisher(key, **self._radio_options)
-            pub.put(data)
+            # The sender's UNIX time: the receiver's apparent delay bounds the clocks' offset.
+            pub.put(data, attachment=wire.encode_send_time(time.time()))
         else:
             self._pub_tx.put(data, attachment=wire.encode_send_time(time.perf_counter()))
         self.sent += 1
@@ -508,9 +517,6 @@ def serve(node: Node, cfg: AgentConfig) -> None:
     except zenoh.ZError as exc:
         raise OpenError(f"agent {node.id}: cannot open a Zenoh session ({cfg.mode}, connect {', '.join(cfg.connect)}): "
                         f"{zenoh_message(exc)}") from None
-    except sensor_sources.SourceError as exc:
-        daemon.close()
-        raise OpenError(f"agent {node.id}: {exc}") from None
     keys = daemon.keys
     radio = [keys.radio_rx(node.id), *([keys.radio_rx(BROADCAST)] if cfg.direct else [])]
     inputs = [*((keys.sensors(node.id),) if cfg.sensor_keys is None else cfg.sensor_keys), *(s.name for s in daemon.sources)]

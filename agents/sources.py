@@ -10,6 +10,7 @@ node have a single owner.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import time
@@ -22,6 +23,10 @@ from swarmloc import ins
 from swarmloc.messages import AlignMsg, GnssMsg, ImuMsg, OdometryMsg, Sensors
 
 log = logging.getLogger("swarmloc.agent")
+
+REOPEN_PERIOD = 2.0
+"""s between two attempts to open a flight controller that could not be opened (a serial device
+not plugged in yet, a TCP server not listening)."""
 
 POLL_PERIOD = 0.02
 """s between two polls of a flight controller: a serial port's buffer holds ~45 ms at 921600 baud."""
@@ -41,10 +46,6 @@ OFFSET_WINDOW = 10.0
 """s of samples over which a flight controller's clock offset is the smallest (arrival - stamp):
 long enough to catch a sample that arrived at once, short enough to follow the FC crystal's
 drift (tens of ppm: a millisecond in 30 s)."""
-
-
-class SourceError(RuntimeError):
-    """A source that cannot be opened at all (a serial device that is not there)."""
 
 
 def monotonic_of(unix: float) -> float:
@@ -168,9 +169,13 @@ class FlightControllerTicks:
     falls in, `start`, with tick 0's content: the node starts there from its prior.
     """
 
-    def __init__(self, fc, model: str, cfg, prior: tuple[np.ndarray, np.ndarray], aid: int,
+    def __init__(self, open_fc, model: str, cfg, prior: tuple[np.ndarray, np.ndarray], aid: int,
                  epoch: float | None = None):
-        self.fc, self.model, self.cfg, self.prior, self.aid = fc, model, cfg, prior, aid
+        # open_fc() -> agents.mavlink.FlightController; until it succeeds the FC counts as lost.
+        self.open_fc, self.fc, self.url = open_fc, None, cfg.url
+        self.model, self.cfg, self.prior, self.aid = model, cfg, prior, aid
+        self._next_open = -math.inf
+        self._open_failures = 0
         self.epoch = epoch
         self.offset = ClockOffset()
         self.start: int | None = None  # the first frame's tick
@@ -191,7 +196,27 @@ class FlightControllerTicks:
 
     @property
     def name(self) -> str:
-        return f"mavlink {self.fc.url}"
+        return f"mavlink {self.url}"
+
+    def _open(self, now: float) -> bool:
+        """Open the FC link if it is not open; retried every REOPEN_PERIOD, said once."""
+        if self.fc is not None:
+            return True
+        if now < self._next_open:
+            return False
+        self._next_open = now + REOPEN_PERIOD
+        try:
+            self.fc = self.open_fc()
+        except Exception as exc:  # pymavlink raises what the OS says (serial, TCP), untyped
+            self._open_failures += 1
+            if self._open_failures == 1:
+                log.warning("agent %s: cannot open the flight controller at %s: %s; retrying every %g s, the agent "
+                            "runs on the radio meanwhile", self.aid, self.url, exc, REOPEN_PERIOD)
+            return False
+        if self._open_failures:
+            log.warning("agent %s: the flight controller at %s is open after %d failed attempts; sensor frames "
+                        "follow its heartbeat", self.aid, self.url, self._open_failures)
+        return True
 
     def time_of(self, k: int) -> float:
         return self.base + k * self.tick
@@ -199,7 +224,7 @@ class FlightControllerTicks:
     # ---------------------------------------------------------------- polling
 
     def ready(self, now: float) -> list[Sensors]:
-        if now < self._next_poll:
+        if now < self._next_poll or not self._open(now):
             return []
         self._next_poll = now + POLL_PERIOD
         from agents.mavlink import Attitude, GnssFix, Imu, Link, Odometry
@@ -223,22 +248,32 @@ class FlightControllerTicks:
             elif isinstance(s, Imu) and not self.planar:
                 out += self._driving(s.t, (s.t, [*s.rate, *s.specific_force]), arrival)
         state = self.fc.state
-        if state is Link.ALIVE and self._was is Link.LOST:
+        if state is Link.LOST and self.fc.dropped["link-error"]:
+            # Lost with read errors: the device or the TCP peer is gone (a serial adapter
+            # unplugged). This connection will not come back by itself: open a new one.
+            log.warning("agent %s: the flight controller's link at %s fails to read; reopening it", self.aid, self.url)
+            self.fc.close()
+            self.fc, self._open_failures = None, 0
+            self._next_open = now + REOPEN_PERIOD
+        elif state is Link.ALIVE and self._was is Link.LOST:
             # The FC logs the loss at WARNING and the return at INFO: the return is as much news.
             log.warning("agent %s: the flight controller at %s is back; sensor frames resume", self.aid, self.fc.url)
         self._was = state
         return out
 
     def wait(self, now: float) -> float:
-        return max(0.0, self._next_poll - now)
+        return max(0.0, (self._next_poll if self.fc is not None else self._next_open) - now)
 
     def stats(self) -> dict:
+        if self.fc is None:
+            return {"tick": self.k, "link": "unopened", "open_failures": self._open_failures}
         clock = {} if self.epoch is None or not self.offset.window else {"clock_offset_s": self.offset.window[0][1]}
         return {"tick": self.k, "link": self.fc.state.value, **clock, "received": dict(self.fc.received),
                 "dropped": dict(self.fc.dropped), "unused": dict(self.counts)}
 
     def close(self) -> None:
-        self.fc.close()
+        if self.fc is not None:
+            self.fc.close()
 
     # ---------------------------------------------------------------- ticks
 
@@ -348,12 +383,11 @@ def build(node, specs, output=None, epoch: float | None = None) -> list:
             from agents.mavlink import FlightController, mavlink
 
             e = node.estimate()
-            try:
-                fc = FlightController(spec.url, baud=spec.baud or 921600,
-                                      origin=tuple(spec.origin) if spec.origin else None, **_output_args(output, mavlink))
-            except Exception as exc:  # pymavlink raises what the OS says (serial, TCP), untyped
-                raise SourceError(f"cannot open the flight controller at {spec.url}: {exc}") from None
-            out.append(FlightControllerTicks(fc, node.model.name, spec, (e.mean, e.cov), node.id, epoch))
+            opener = functools.partial(FlightController, spec.url, baud=spec.baud or 921600,
+                                       origin=tuple(spec.origin) if spec.origin else None, **_output_args(output, mavlink))
+            ticks = FlightControllerTicks(opener, node.model.name, spec, (e.mean, e.cov), node.id, epoch)
+            ticks._open(-math.inf)  # at once: a link that opens is polled from the first turn
+            out.append(ticks)
     return out
 
 
@@ -368,6 +402,8 @@ def to_flight_controller(ticks: FlightControllerTicks, model_name: str, mean: np
     """Offer an estimate to the FC (agents/mavlink.py converts ENU to NED): position with its
     covariance; a planar model's height is the FC's own (PLANAR_HEIGHT_STD), planar-pose adds
     its heading, uas-ins its velocity and yaw. True if it went out."""
+    if ticks.fc is None:
+        return False
     if model_name == "uas-ins":
         yaw = ins.euler_from_quat(ins.quat_from_rotvec(mean[6:9]))[2]
         return ticks.fc.send_estimate(t, mean[0:3], cov[0:3, 0:3], mean[3:6], cov[3:6, 3:6], yaw, float(cov[8, 8]))

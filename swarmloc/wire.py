@@ -438,7 +438,8 @@ def publisher_options(zenoh, lossy: bool = False) -> dict:
 # time; netsim stamps each frame it hands an agent with a per-receiver delivery number (so
 # lockstep can tell "consumed what I delivered" from "consumed anything") and passes the send
 # time on, so the receiver can measure the hop. Times are CLOCK_MONOTONIC seconds
-# (time.perf_counter on Linux), comparable between processes of one machine only.
+# (time.perf_counter on Linux), comparable between processes of one machine only. In direct
+# mode (no netsim) a radio/rx frame carries its sender's UNIX time instead, in the same format.
 def encode_send_time(t: float) -> bytes:
     return struct.pack("<d", t)
 

@@ -179,6 +179,29 @@ def test_missing_flight_controller(tmp_path, agents):
     assert sum("no heartbeat" in line for line in agent.lines) == 1 and "Traceback" not in "".join(agent.lines)
 
 
+def test_a_flight_controller_that_cannot_be_opened_is_retried(tmp_path, agents):
+    """A serial device that is not plugged in: one warning, the agent keeps running (its radio
+    and stats work) and tries again every 2 s; SIGTERM still ends it within 2 s."""
+    device = str(tmp_path / "ttyACM9")
+    agent = agents(tmp_path, sensors=[{"kind": "mavlink", "url": device}], outputs={"mavlink": {}})
+    line = agent.wait_for("cannot open the flight controller")
+    assert f"cannot open the flight controller at {device}" in line and "retrying every 2 s" in line
+    with agent.session() as session:
+        stats = {}
+
+        def poll():
+            replies = list(session.get(agent.keys.stats(1), timeout=2.0))
+            stats.update(wire.decode(replies[0].ok.payload.to_bytes()).body.data if replies else {})
+            return stats.get("sources", {}).get(f"mavlink {device}", {}).get("open_failures", 0) >= 2
+
+        wait_until(poll, 8)
+        assert stats["sources"][f"mavlink {device}"]["link"] == "unopened", stats
+    start = time.monotonic()
+    assert agent.stop() in (0, 143)
+    assert time.monotonic() - start < 2.0
+    assert sum("cannot open" in line for line in agent.lines) == 1 and "Traceback" not in "".join(agent.lines)
+
+
 def test_a_recording_replays_as_the_in_process_run(tmp_path, agents):
     sc = load_scenario("wang2019")
     sc = sc.model_copy(update={"clock": sc.clock.model_copy(update={"duration": 40.0})})

@@ -1,0 +1,671 @@
+"""Property-based fuzzing (hypothesis) of what arrives from the wire.
+
+- The decoder: whatever the bytes (random, any MessagePack, a real frame with one field made
+  hostile), `wire.decode` answers an Envelope or raises WireError, nothing else; the
+  attachment decoders answer a value or None.
+- Every estimator node the agents run: a radio message that passes the decoder but carries
+  hostile values (NaN-free by then, but huge, tiny, negative, unknown ids, wrong dimensions,
+  duplicated or missing entries) never makes `receive` raise, and the node's estimate stays a
+  finite, symmetric, positive semi-definite Gaussian, also after its next tick.
+- The agent daemon: fuzzed bytes on its radio, sensor, clock and measurement keys are counted
+  as rejected or handled; nothing escapes `_handle` and the estimate stays sane.
+
+Every test is derandomized (CI explores the same inputs on every run, and a failure
+reproduces) and bounded in wall time by pytest-timeout, which turns a hang into a failure.
+"""
+
+from __future__ import annotations
+
+import copy
+import functools
+import math
+import time
+from dataclasses import dataclass
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, example, given, settings
+from hypothesis import strategies as st
+
+from netsim.sim import Simulation
+from swarmloc import messages as M
+from swarmloc import scenario as S
+from swarmloc import wire
+from swarmloc.estimators import REGISTRY, make_nodes
+from swarmloc.node import Outbox, Send, Timer, Timers
+
+DECODER_EXAMPLES = 10_000  # the issue's floor, per decoder entry point
+SLOW = [HealthCheck.too_slow, HealthCheck.data_too_large, HealthCheck.large_base_example]
+
+
+def fuzz_settings(n: int):
+    # No example database: a derandomized run must not depend on what an earlier run saved.
+    return settings(max_examples=n, deadline=None, derandomize=True, database=None, suppress_health_check=SLOW)
+
+
+# --------------------------------------------------------------------------- one valid message per type
+
+_EYE2, _EYE3 = np.eye(2), np.eye(3)
+_ODO = M.OdometryMsg(0.5, 1.0, 0.2, 0.5, 0.01, 0.01, 0.001)
+_RB = M.RangeBearingMsg(2, 10.0, 0.3, 0.1, 0.05)
+_SENSORS = M.Sensors(
+    4, 2.0, _ODO, [M.RangeMsg(2, 41.5, 1.0), M.RangeMsg(3, 12.0, 1.0)],
+    gnss=M.GnssMsg(np.array([1.0, 2.0, 3.0]), 0.5, 0.8), imu=M.ImuMsg(0.01, np.zeros((2, 6))),
+    pseudoranges=M.PseudorangesMsg(np.ones((4, 3)) * 2e7, np.full(4, 2e7), 3.0),
+    relpos=[M.RelPosMsg(2, np.array([1.0, -2.0, 0.5]), 0.05)], align=M.AlignMsg(np.zeros(16), np.eye(16) * 0.01),
+    targets=[M.TargetRangeMsg(0, 300.0, 10.0)], rb=[_RB], landmarks=[M.RangeBearingMsg(7, 5.0, -1.0, 0.1, 0.05)])
+_COMMIT = M.DclCommit(3, 0, [1, 0, 2, 0], 5, {1: 4, 2: 3}, np.eye(4), np.ones((4, 1)), np.eye(1), np.zeros(1), {2: 1},
+                      {1: np.zeros((2, 1)), 3: np.ones((2, 1))}, [1, 2], [[2, 3]], True, [[1, 0, 3, 0]],
+                      {1: np.eye(2)})
+_LINK = M.LinkMsg(1, 2, True, 12.5, "", 20.0, 18.0, 0.99, 10, 1, 0.9, 3.5)
+SAMPLES = {
+    "clock": M.Clock(3, 1.5, "lockstep", 0.5, 1.0),
+    "odometry": _ODO,
+    "range": M.RangeMsg(2, 41.5, 1.0),
+    "gnss": M.GnssMsg(np.array([1.0, 2.0]), 0.5),
+    "imu": M.ImuMsg(0.01, np.arange(12.0).reshape(2, 6)),
+    "pseudoranges": _SENSORS.pseudoranges,
+    "relpos": _SENSORS.relpos[0],
+    "target_range": M.TargetRangeMsg(0, 300.0, 10.0),
+    "range_bearing": _RB,
+    "align": _SENSORS.align,
+    "sensors": _SENSORS,
+    "truth": M.Truth(3, 1.5, np.array([1.0, 2.0, 0.3])),
+    "target_estimate": M.TargetEstimateMsg(0, np.array([500.0, 0.0]), _EYE2),
+    "estimate": M.EstimateMsg(3, "ukf-dcl", np.array([1.0, 2.0]), _EYE2, np.array([[1.2, 1.0]]),
+                              [M.TargetEstimateMsg(0, np.array([500.0, 0.0]), _EYE2)]),
+    "done": M.Done(3, 7, 9),
+    "beacon": M.Beacon(3, np.array([1.0, 2.0]), _EYE2, {1: 2, 3: 1}),
+    "ci.pose": M.PoseBeacon(3, np.array([1.0, 2.0, 0.1]), _EYE3 * 0.1, [_RB]),
+    "dcl.start": M.DclStart(3, 0, [1, 0, 2, 0], np.array([10.0]), np.eye(1), np.array([1.0, 2.0]),
+                            {1: _EYE2, 2: np.zeros((2, 2))}, {1: 2}, False, [[1, 0, 3, 0]], {1: _EYE2}),
+    "dcl.token": M.DclToken(3, 0, [1, 0, 2, 0], M.CHAIN_OK, np.eye(4), np.ones((4, 1)), np.eye(1), np.zeros(1), [1, 2],
+                            {2: 1}, {1: np.zeros((2, 1))}, {1: {1: 4, 2: 3}, 2: {1: 4, 2: 3}}, [], [[1, 0, 2, 0]],
+                            {2: _EYE2}),
+    "dcl.commit": _COMMIT,
+    "dcl.sync": M.DclSync(3, {1: 4, 2: 3}),
+    "dcl.log": M.DclLog(3, [_COMMIT, _COMMIT]),
+    "csl.share": M.CslShare(4, _SENSORS),
+    "ctl.fix": M.CtlFix(4, np.array([1.0, 2.0]), _EYE2, [M.TargetRangeMsg(0, 300.0, 10.0)]),
+    "fc.data": M.CentreData(4, _SENSORS, np.zeros(16), np.eye(16)),
+    "fc.estimate": M.CentreEstimate(4, np.zeros(16), np.eye(16)),
+    "nbp.belief": M.NbpBelief(3, 1, False, np.arange(20, dtype=np.float32).reshape(10, 2),
+                              np.full(10, 0.1, np.float32), np.eye(2) * 4.0),
+    "radio.nack": M.LinkNack(9, 2, "no-ack"),
+    "control": M.Control("inject", {"action": "kill", "node": 2, "at": [1.5, None], "nested": {"a": True}}),
+    "reply": M.Reply(False, "bad op", {"status": {"k": 3}, "ids": [1, 2]}),
+    "event": M.Event("kill", 2, 3.5),
+    "link": _LINK,
+    "links": M.Links(3, [_LINK, M.LinkMsg(2, 3, False, math.inf, "fault", -math.inf, None, 0.0, 0, 5, None, None)]),
+}
+TYPES = sorted(SAMPLES)
+
+
+def frame_tree(msg, src=1, seq=1, dst=None) -> dict:
+    """A message's envelope as plain MessagePack data, to be mutated and packed again."""
+    return msgpack.unpackb(wire.encode(msg, src, seq, dst), raw=False, strict_map_key=False)
+
+
+def pack(tree) -> bytes:
+    return msgpack.packb(tree, use_bin_type=True)
+
+
+VALID_TREES = {name: frame_tree(msg, dst=2 if name == "radio.nack" else None) for name, msg in SAMPLES.items()}
+
+
+def test_every_registered_type_has_a_sample_that_decodes():
+    # A new message type without a sample here would escape the near-valid fuzzing below.
+    assert set(SAMPLES) == set(wire.REGISTRY)
+    for name, tree in VALID_TREES.items():
+        assert wire.decode(pack(tree)).type == name
+
+
+# --------------------------------------------------------------------------- strategies
+
+INT64 = st.integers(-(2**63), 2**64 - 1)  # what MessagePack can carry
+SCALARS = st.one_of(
+    st.none(), st.booleans(), INT64, st.sampled_from([0, -1, 2**31, 2**63 - 1, -(2**63), 2**64 - 1]),
+    st.floats(), st.sampled_from([math.nan, math.inf, -math.inf, -0.0, 1e308, 5e-324]),
+    st.text(max_size=20), st.binary(max_size=40),
+    st.builds(msgpack.ExtType, st.integers(0, 127), st.binary(max_size=16)),
+    st.builds(msgpack.Timestamp, st.integers(0, 2**34 - 1), st.integers(0, 999_999_999)),
+)
+FIELD_NAMES = sorted({f for cls in wire.REGISTRY.values() for f in cls._specs} | wire.Envelope.KEYS | {"dtype", "shape"})
+KEYS = st.one_of(st.sampled_from(FIELD_NAMES), st.text(max_size=8), INT64, st.booleans(), st.none(), st.floats())
+MSGPACK = st.recursive(
+    SCALARS, lambda inner: st.one_of(st.lists(inner, max_size=6), st.dictionaries(KEYS, inner, max_size=6)),
+    max_leaves=30)
+
+
+def _typed_body(name):
+    # A body with (some of) the type's own field names, each holding anything.
+    return st.fixed_dictionaries({}, optional={f: MSGPACK for f in wire.REGISTRY[name]._specs})
+
+
+ENVELOPES = st.fixed_dictionaries(
+    {"v": st.one_of(st.just(wire.SCHEMA_VERSION), MSGPACK),
+     "type": st.one_of(st.sampled_from(TYPES), MSGPACK),
+     "src": st.one_of(st.integers(0, wire.MAX_ID), MSGPACK),
+     "seq": st.one_of(st.integers(0, 2**63 - 1), MSGPACK),
+     "body": st.one_of(st.sampled_from(TYPES).flatmap(_typed_body), MSGPACK)},
+    optional={"dst": st.one_of(st.none(), st.integers(0, wire.MAX_ID), MSGPACK), "extra": MSGPACK})
+
+
+def paths(tree, prefix=()):
+    """Every position in a MessagePack tree (the root, map values, list items)."""
+    yield prefix
+    if isinstance(tree, dict):
+        for k, v in tree.items():
+            yield from paths(v, prefix + (k,))
+    elif isinstance(tree, list):
+        for i, v in enumerate(tree):
+            yield from paths(v, prefix + (i,))
+
+
+def get(tree, path):
+    for p in path:
+        tree = tree[p]
+    return tree
+
+
+def put(tree, path, value):
+    """The tree with the value at path replaced (the root if path is empty)."""
+    if not path:
+        return value
+    get(tree, path[:-1])[path[-1]] = value
+    return tree
+
+
+def is_array(v) -> bool:
+    return isinstance(v, dict) and set(v) == {"dtype", "shape", "data"}
+
+
+HOSTILE_VALUES = st.one_of(
+    st.sampled_from([None, True, False, 0, -1, 2**31, 2**63 - 1, -(2**63), 2**64 - 1, math.nan, math.inf, -math.inf,
+                     -0.0, 1e308, 5e-324, "", "x" * 600, b"", b"\x00" * 9, [], {}, [[[]]], {"dtype": "<f8"}]),
+    MSGPACK)
+
+
+@st.composite
+def near_valid(draw, trees=VALID_TREES):
+    """A valid frame of some type with one position made wrong (type, value, size, shape,
+    nesting, a key missing or added); the header is a position too."""
+    name = draw(st.sampled_from(sorted(trees)))
+    tree = copy.deepcopy(trees[name])
+    path = draw(st.sampled_from(list(paths(tree))))
+    here = get(tree, path)
+    kind = draw(st.sampled_from(["replace", "delete", "extra", "oversize", "nest", "array", "retype"]))
+    if kind == "replace" or (kind == "delete" and not path):
+        return put(tree, path, draw(HOSTILE_VALUES))
+    if kind == "delete":
+        del get(tree, path[:-1])[path[-1]]
+        return tree
+    if kind == "extra":
+        if isinstance(here, dict):
+            here[draw(KEYS)] = draw(MSGPACK)
+        elif isinstance(here, list):
+            here.append(copy.deepcopy(here[0]) if here and draw(st.booleans()) else draw(MSGPACK))
+        else:
+            put(tree, path, [here, draw(MSGPACK)])
+        return tree
+    if kind == "oversize":
+        n = draw(st.sampled_from([65, 1025, 4097, 20_000]))
+        if isinstance(here, (list, str, bytes)) and len(here):
+            big = (here * (n // len(here) + 1))[:n]
+        elif isinstance(here, dict):
+            big = {**here, **{f"k{i}": i for i in range(n)}}
+        else:
+            big = [here] * n
+        return put(tree, path, big)
+    if kind == "nest":
+        v = here
+        for _ in range(draw(st.integers(1, 300))):
+            v = [v] if draw(st.booleans()) else {"body": v}
+        return put(tree, path, v)
+    if kind == "array":
+        arrays = [p for p in paths(tree) if is_array(get(tree, p))]
+        if not arrays:
+            return put(tree, path, draw(HOSTILE_VALUES))
+        a = get(tree, draw(st.sampled_from(arrays)))
+        what = draw(st.sampled_from(["dtype", "shape", "data"]))
+        if what == "dtype":
+            a["dtype"] = draw(st.one_of(st.sampled_from(["<f4", "<f8", ">f8", "<i8", "f8", "|O", "<c16", ""]), SCALARS))
+        elif what == "shape":
+            a["shape"] = draw(st.one_of(st.lists(st.one_of(st.integers(-3, 5000), SCALARS), max_size=4), SCALARS))
+        else:
+            size = 4 if a["dtype"] == "<f4" else 8
+            n = len(a["data"]) // size if isinstance(a["data"], bytes) else 0
+            special = np.array([math.nan, math.inf, -math.inf, 1e300], dtype=a["dtype"] if size in (4, 8) else "<f8")
+            a["data"] = draw(st.one_of(
+                st.binary(max_size=64),
+                st.just(a["data"][:-1] if n else b"\x00"),
+                st.just(a["data"] + b"\x00" * size),
+                st.integers(0, 3).map(lambda i: special[i].tobytes() * max(n, 1)),
+                st.integers(0, 3).map(lambda i: special[i].tobytes() + a["data"][size:]),
+            ))
+        return tree
+    # retype: the same value in a neighbouring type (int <-> float <-> bool, str <-> bytes)
+    if isinstance(here, bool):
+        return put(tree, path, int(here))
+    if isinstance(here, int):
+        return put(tree, path, draw(st.sampled_from([float(here), here != 0, str(here)])))
+    if isinstance(here, float):
+        return put(tree, path, int(here) if math.isfinite(here) else None)
+    if isinstance(here, str):
+        return put(tree, path, here.encode())
+    if isinstance(here, bytes):
+        return put(tree, path, list(here))
+    return put(tree, path, draw(HOSTILE_VALUES))
+
+
+VALID_FRAMES = [pack(VALID_TREES[name]) for name in TYPES]
+
+
+@st.composite
+def corrupted(draw):
+    """A valid frame's bytes truncated, with bytes flipped, or with bytes spliced in."""
+    data = bytearray(draw(st.sampled_from(VALID_FRAMES)))
+    for _ in range(draw(st.integers(1, 3))):
+        i = draw(st.integers(0, len(data)))
+        kind = draw(st.sampled_from(["truncate", "flip", "splice"]))
+        if kind == "truncate":
+            del data[i:]
+        elif kind == "flip" and i < len(data):
+            data[i] ^= draw(st.integers(1, 255))
+        else:
+            data[i:i] = draw(st.binary(min_size=1, max_size=8))
+    return bytes(data)
+
+
+def check_decode(data, **kw):
+    """The decoder's contract: an Envelope of a registered type, or WireError."""
+    try:
+        env = wire.decode(data, **kw)
+    except wire.WireError:
+        return None
+    assert isinstance(env, wire.Envelope)
+    assert isinstance(env.body, wire.REGISTRY[env.type]) or not kw.get("body", True)
+    return env
+
+
+# --------------------------------------------------------------------------- decoder
+
+@pytest.mark.timeout(120)
+def test_decode_arbitrary_bytes():
+    runs = []
+
+    @fuzz_settings(DECODER_EXAMPLES)
+    @given(st.one_of(st.binary(max_size=128), st.binary(max_size=128).map(lambda b: b"\x86" + b), corrupted()))
+    @example(b"\x91" * 60_000 + b"\xc0")  # nesting far beyond msgpack's own stack
+    @example(b"\xdb\xff\xff\xff\xff")  # str32 claiming 4 GiB
+    @example(b"\xdd\xff\xff\xff\xff")  # array32 claiming 4 G items
+    @example(b"\x00" * (wire.MAX_WIRE_BYTES + 1))
+    @example(b"\xc7\x03\xff\x00\x00\x00")  # a timestamp extension of impossible length
+    def check(data):
+        runs.append(1)
+        check_decode(data)
+        check_decode(bytearray(data), body=False)
+        check_decode(memoryview(data), expect=(M.Sensors,))
+
+    check()
+    assert len(runs) >= DECODER_EXAMPLES
+
+
+@pytest.mark.timeout(180)
+def test_decode_any_msgpack_structure():
+    runs, envelopes = [], []
+
+    @fuzz_settings(DECODER_EXAMPLES)
+    @given(st.one_of(MSGPACK, ENVELOPES))
+    def check(tree):
+        runs.append(1)
+        data = pack(tree)
+        if check_decode(data) is not None:
+            envelopes.append(1)
+        check_decode(data, body=False)
+
+    check()
+    assert len(runs) >= DECODER_EXAMPLES
+
+
+@pytest.mark.timeout(180)
+def test_decode_near_valid_frames():
+    runs, accepted = [], []
+
+    @fuzz_settings(DECODER_EXAMPLES)
+    @given(near_valid())
+    def check(tree):
+        runs.append(1)
+        data = pack(tree)
+        env = check_decode(data)
+        check_decode(data, body=False)
+        if env is None:
+            return
+        accepted.append(env.type)
+        # What the decoder accepts, a node may relay (dcl.log, csl.share): it must encode again.
+        again = wire.encode(env.body, env.src, env.seq, env.dst)
+        if len(again) <= wire.max_bytes(env.type):
+            assert wire.decode(again).type == env.type
+
+    check()
+    assert len(runs) >= DECODER_EXAMPLES
+    assert len(set(accepted)) > len(TYPES) // 2  # mutations that keep a frame valid happen too, for most types
+
+
+@pytest.mark.timeout(60)
+def test_attachment_decoders_on_arbitrary_bytes():
+    runs = []
+
+    @fuzz_settings(DECODER_EXAMPLES)
+    @given(st.one_of(st.none(), st.binary(max_size=24), st.binary(min_size=8, max_size=8),
+                     st.binary(min_size=16, max_size=16)))
+    def check(data):
+        runs.append(1)
+        t = wire.decode_send_time(data)
+        assert t is None or isinstance(t, float)
+        d = wire.decode_delivery(data)
+        assert d is None or (isinstance(d[0], int) and d[0] >= 0 and (d[1] is None or isinstance(d[1], float)))
+
+    check()
+    assert len(runs) >= DECODER_EXAMPLES
+
+
+# --------------------------------------------------------------------------- estimator nodes
+
+def pose_robots(estimator: str):
+    """Four unicycles within 40 m, ranging and seeing each other and landmarks by range and
+    bearing: every chain and fusion path of the planar-pose estimators runs."""
+    agents = [{"id": i + 1, "model": "planar-pose", "start": s, "heading": h,
+               "motion": {"kind": "circle", "speed": 0.5, "turn_rate": 0.05 * (-1) ** i}}
+              for i, (s, h) in enumerate([([0.0, 0.0], 0.3), ([10.0, 2.0], 1.9), ([5.0, 9.0], 4.0), ([-6.0, 5.0], 5.5)])]
+    marks = [{"id": 10 + j, "position": p} for j, p in enumerate([[5.0, 5.0], [-5.0, -5.0], [12.0, -3.0]])]
+    return S.parse({
+        "version": S.SCENARIO_VERSION, "name": "fuzz-pose", "seed": 3,
+        "clock": {"mode": "lockstep", "dt": 0.5, "duration": 10.0},
+        "world": {"agents": agents, "landmarks": marks},
+        "sensors": {"odometry": {"speed_noise": 0.1, "turn_rate_noise": 0.02},
+                    "range": {"noise": 0.3, "probability": 0.5, "max_per_step": 2, "max_range": 60},
+                    "range_bearing": {"enabled": True, "max_range": 60.0, "range_noise": 0.3, "bearing_noise": 0.03}},
+        "radio": {"model": "unit-disk", "range_m": 1000},
+        "estimator": {"name": estimator}, "references": []})
+
+
+# case -> (estimator, scenario); every estimator the agents can run, on each kind of platform it supports.
+CASES = {
+    "il": ("il", lambda: S.load("wang2019")),
+    "ukf-dcl": ("ukf-dcl", lambda: S.load("wang2019")),
+    "ukf-dcl/pose": ("ukf-dcl", lambda: pose_robots("ukf-dcl")),
+    "csl-ctl": ("csl-ctl", lambda: S.load("wang2022")),
+    "il-ctl": ("il-ctl", lambda: S.load("wang2022")),
+    "dnbp": ("dnbp", lambda: S.load("wan2014").with_overrides(**{"estimator.params": {"M": 40, "iterations": 3}})),
+    "ekf": ("ekf", lambda: S.load("goel-dist").with_overrides(**{"sensors.epoch": 0.2})),
+    "ekf/pose": ("ekf", lambda: pose_robots("ekf")),
+    "ekf-ci": ("ekf-ci", lambda: S.load("goel-dist").with_overrides(**{"sensors.epoch": 0.2})),
+    "ekf-ci/pose": ("ekf-ci", lambda: pose_robots("ekf-ci")),
+    "ekf-naive": ("ekf-naive", lambda: S.load("goel-dist").with_overrides(**{"sensors.epoch": 0.2})),
+    "ekf-centre": ("ekf-centre", lambda: S.load("goel2node")),
+}
+TICKS = 6
+MAX_CONTEXTS = 40
+
+
+def test_cases_cover_every_estimator_the_agents_run():
+    assert {name for name, _ in CASES.values()} == set(REGISTRY.running())
+
+
+@dataclass
+class Context:
+    """A node as it was just before it received a real frame of the swarm (from `src`)."""
+
+    node: object
+    src: int | None
+    frame: bytes | None
+    next_frame: M.Sensors  # the node's sensor frame of the tick after
+
+
+@dataclass
+class World:
+    ids: list
+    contexts: list
+    sensor_trees: list  # real sensor frames of the next tick, as envelopes
+
+
+@functools.lru_cache(maxsize=None)
+def world(case: str) -> World:
+    """Run the case's swarm for TICKS ticks, lockstep as the in-process runner does, keeping a
+    copy of each receiver before every delivery of the last two ticks."""
+    name, scenario = CASES[case]
+    sc = scenario()
+    sim, nodes = Simulation(sc), make_nodes(name, sc)
+    outbox, timers = {a: Outbox(a) for a in nodes}, {a: Timers() for a in nodes}
+    received = []
+
+    def encode(a, actions, t):
+        return [tx for s in timers[a].split(actions, t) if (tx := outbox[a].encode(s)) is not None]
+
+    for i in range(TICKS):
+        _, t, frames = sim.tick()
+        sent = []
+        for a in sorted(nodes):
+            fired = [x for tag in timers[a].pop_due(t) for x in nodes[a].on_timer(tag, t)]
+            sent += encode(a, fired + nodes[a].step(frames[a]), t)
+        while sent:
+            nxt = []
+            for rx in sim.exchange(sent):
+                node = nodes.get(rx.receiver)
+                if node is None:
+                    continue
+                if rx.nack is not None:
+                    failed = outbox[rx.receiver].failed(rx.nack)
+                    actions = node.link_failed(failed.dst, failed.msg) if failed else []
+                else:
+                    env = wire.decode(rx.data)
+                    if env.src == rx.receiver:
+                        continue
+                    if i >= TICKS - 2:
+                        received.append((rx.receiver, copy.deepcopy(node), env.src, rx.data))
+                    actions = node.receive(env.src, env.body)
+                nxt += encode(rx.receiver, actions, t)
+            sent = nxt
+    _, _, after = sim.tick()
+    keep = received[:: max(1, len(received) // MAX_CONTEXTS)][:MAX_CONTEXTS]
+    contexts = [Context(node, src, data, after[a]) for a, node, src, data in keep]
+    # Every node as it ended the run, for messages of other types and for estimators that send nothing.
+    contexts += [Context(copy.deepcopy(n), None, None, after[a]) for a, n in sorted(nodes.items())]
+    return World(sorted(nodes), contexts, [frame_tree(after[a], 0, 10 + a) for a in sorted(after)])
+
+
+def check_gaussian(mean, cov, what):
+    mean, cov = np.asarray(mean), np.asarray(cov)
+    assert np.isfinite(mean).all() and np.isfinite(cov).all(), f"{what}: not finite"
+    n = mean.shape[0]
+    assert cov.shape == (n, n), f"{what}: covariance {cov.shape} for a mean of {n}"
+    if n == 0:
+        return
+    scale = max(1.0, float(np.abs(cov).max()))
+    assert np.abs(cov - cov.T).max() <= 1e-9 * scale, f"{what}: covariance not symmetric"
+    assert np.linalg.eigvalsh((cov + cov.T) / 2).min() >= -1e-9 * scale, f"{what}: covariance not PSD"
+
+
+def check_node(node, when):
+    e = node.estimate()
+    check_gaussian(e.mean, e.cov, f"node {node.id} {when}")
+    for target, m, P in e.targets:
+        check_gaussian(m, P, f"node {node.id} {when}, target {target}")
+
+
+def check_actions(node, actions):
+    """A node's answer is a list of sends and timers, and every send encodes: the daemon's
+    `_send` runs outside its error guard, so a message that fails to encode kills the agent."""
+    assert isinstance(actions, list)
+    for a in actions:
+        assert isinstance(a, (Send, Timer)), a
+        if isinstance(a, Send):
+            data = wire.encode(a.msg, node.id, 1, a.dst)
+            if len(data) <= wire.max_bytes(a.msg):
+                wire.decode(data)  # what we send, our peers accept
+
+
+FINITE = [0.0, -0.0, 5e-324, 1e-300, 1e-12, -1.0, 0.5, 3.0, 1e12, 1e154, -1e154, 1e300, -1e300, 1.7976931348623157e308]
+SCALE = [0.0, -1.0, 1e-300, 1e-12, 1e12, 1e154, 1e300]
+
+
+@st.composite
+def hostile_array(draw, a: dict):
+    """An array of the field's dtype: the original scaled, transposed, made asymmetric, or a
+    new one of another shape (decodes unless the field's shape limits say no)."""
+    dt = a["dtype"]
+    x = np.frombuffer(a["data"], dt).reshape(a["shape"]).astype(float)
+    kind = draw(st.sampled_from(["scale", "entry", "shape", "negate-diag", "asymmetric"]))
+    if kind == "scale":
+        x = x * draw(st.sampled_from(SCALE))
+    elif kind == "entry" and x.size:
+        x = x.copy()
+        x.flat[draw(st.integers(0, x.size - 1))] = draw(st.one_of(st.sampled_from(FINITE),
+                                                                  st.floats(allow_nan=False, allow_infinity=False)))
+    elif kind == "shape":
+        shape = draw(st.lists(st.integers(0, 5), min_size=x.ndim, max_size=x.ndim))
+        if draw(st.booleans()) and x.ndim == 2:
+            shape = [shape[0], shape[0]]
+        fill = draw(st.sampled_from(FINITE))
+        x = np.full(shape, fill) if draw(st.booleans()) else np.eye(*shape[:2]) * fill if x.ndim == 2 else np.full(shape, fill)
+    elif kind == "negate-diag" and x.ndim == 2:
+        x = x - 2 * np.diag(np.diag(x)) if x.shape[0] == x.shape[1] else -x
+    elif x.ndim == 2 and x.size > 1:
+        x = x.copy()
+        x.flat[1] += draw(st.sampled_from([1.0, 1e-6, 1e6]))
+    with np.errstate(over="ignore"):
+        return {"dtype": dt, "shape": list(x.shape), "data": np.ascontiguousarray(x, dt).tobytes()}
+
+
+@st.composite
+def hostile_body(draw, tree: dict, ids: list, k: int):
+    """The frame with 1-4 of its values changed to ones the decoder lets through: ids of
+    strangers and of the receiver itself, ticks around the receiver's, huge and tiny floats,
+    arrays of other shapes or scales, entries added to maps or lists and dropped from them."""
+    tree = copy.deepcopy(tree)
+    ints = sorted({0, 1, 2, 3, 999, wire.MAX_ID, 2**40, max(k - 1, 0), max(k, 0), k + 1, k + 2, *ids})
+    for _ in range(draw(st.integers(1, 4))):
+        body_paths = [p for p in paths(tree["body"]) if not p or not is_array(get(tree["body"], p[:-1]))]
+        path = ("body",) + draw(st.sampled_from(body_paths))
+        here = get(tree, path)
+        if is_array(here):
+            put(tree, path, draw(hostile_array(here)))
+        elif isinstance(here, bool):
+            put(tree, path, not here)
+        elif isinstance(here, int):
+            put(tree, path, draw(st.one_of(st.sampled_from(ints), st.just(here + 1), st.just(max(here - 1, 0)))))
+        elif isinstance(here, float):
+            put(tree, path, draw(st.one_of(st.sampled_from(FINITE), st.floats(allow_nan=False, allow_infinity=False))))
+        elif isinstance(here, list):
+            kind = draw(st.sampled_from(["empty", "duplicate", "drop", "reverse"]))
+            if kind == "empty":
+                here.clear()
+            elif kind == "duplicate" and here:
+                here.append(copy.deepcopy(here[0]))
+            elif kind == "drop" and here:
+                here.pop(draw(st.integers(0, len(here) - 1)))
+            else:
+                here.reverse()
+        elif isinstance(here, dict) and len(path) > 1:  # a map of the body (ids -> ...)
+            if here and draw(st.booleans()):
+                del here[draw(st.sampled_from(sorted(here, key=repr)))]
+            elif here:
+                here[draw(st.sampled_from(ints))] = copy.deepcopy(next(iter(here.values())))
+    return tree
+
+
+@st.composite
+def radio_input(draw, case: str):
+    """(context, src, frame bytes): a real frame of the swarm, or a sample of any type, made hostile."""
+    w = world(case)
+    ctx = draw(st.sampled_from(w.contexts))
+    if ctx.frame is not None and draw(st.integers(0, 4)):
+        tree = msgpack.unpackb(ctx.frame, raw=False, strict_map_key=False)
+    else:
+        tree = copy.deepcopy(VALID_TREES[draw(st.sampled_from(TYPES))])
+    tree = draw(hostile_body(tree, w.ids, ctx.node.k))
+    src = ctx.src if ctx.src is not None and draw(st.booleans()) else draw(st.sampled_from(w.ids + [0, 999, wire.MAX_ID]))
+    tree["src"] = src
+    return ctx, src, pack(tree)
+
+
+NODE_EXAMPLES = {"dnbp": 150, "ukf-dcl": 400, "ukf-dcl/pose": 400}  # the rest: 250
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_node_survives_hostile_radio_messages(case):
+    world(case)  # build outside the examples
+    decoded = []
+
+    @fuzz_settings(NODE_EXAMPLES.get(case, 250))
+    @given(st.lists(radio_input(case), min_size=1, max_size=3))
+    def check(inputs):
+        node = copy.deepcopy(inputs[0][0].node)  # the first input's receiver gets them all
+        for _, src, data in inputs:
+            try:
+                env = wire.decode(data)
+            except wire.WireError:
+                continue
+            decoded.append(1)
+            check_actions(node, node.receive(src, env.body))
+            check_node(node, f"after {env.type} from {src}")
+        check_actions(node, node.step(inputs[0][0].next_frame))
+        check_node(node, "on its next tick")
+
+    check()
+    assert len(decoded) >= NODE_EXAMPLES.get(case, 250)  # most hostile messages got past the decoder
+
+
+# --------------------------------------------------------------------------- the agent daemon
+
+@st.composite
+def daemon_input(draw, case: str):
+    """(kind, bytes) on one of the daemon's keys: anything, a broken frame, or a real frame
+    (radio or sensors) with hostile values."""
+    w = world(case)
+    kind = draw(st.sampled_from(["rx", "rx", "sensors", "sensors", "clock", "measurements"]))
+    how = draw(st.sampled_from(["bytes", "near-valid", "hostile", "hostile"]))
+    if how == "bytes":
+        return kind, draw(st.binary(max_size=256))
+    if how == "near-valid":
+        return kind, pack(draw(near_valid()))
+    if kind in ("sensors", "measurements"):
+        tree = draw(st.sampled_from(w.sensor_trees))
+        return kind, pack(draw(hostile_body(tree, w.ids, tree["body"]["k"])))
+    _, src, data = draw(radio_input(case))
+    return kind, data
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_daemon_counts_or_handles_every_input(case):
+    from agents.daemon import AgentConfig, AgentDaemon
+
+    w = world(case)
+    n = 60 if case == "dnbp" else 120
+
+    @fuzz_settings(n)
+    @given(st.sampled_from([c for c in w.contexts if c.frame is None]), st.lists(daemon_input(case), min_size=1, max_size=4))
+    def check(ctx, inputs):
+        node = copy.deepcopy(ctx.node)
+        daemon = AgentDaemon(node, AgentConfig(direct=True, publish_swarm=False))
+        for kind, data in inputs:
+            before = sum(daemon.rejected.values())
+            try:
+                wire.decode(data)
+                malformed = False
+            except wire.WireError:
+                malformed = True
+            out = daemon._handle(kind, data, time.monotonic() if kind == "sensors" else None)
+            assert out is None or isinstance(out, list)
+            if malformed:
+                assert sum(daemon.rejected.values()) == before + 1
+            check_actions(node, out or [])
+            check_node(node, f"after {kind} input")
+        daemon._handle("sensors", wire.encode(ctx.next_frame, 0, 1), time.monotonic())
+        check_node(node, "after its next frame")
+
+    check()
