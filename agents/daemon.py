@@ -502,8 +502,8 @@ class OpenError(RuntimeError):
 
 
 def zenoh_message(exc: Exception) -> str:
-    """A Zenoh error without the Rust source location it ends with."""
-    return re.sub(r"\s+at \S+\.rs:\d+\.?\s*$", "", str(exc)).strip()
+    """A Zenoh error without the Rust source locations it carries."""
+    return re.sub(r"\s+at \S+\.rs:\d+\.?", "", str(exc)).strip()
 
 
 def serve(node: Node, cfg: AgentConfig) -> None:

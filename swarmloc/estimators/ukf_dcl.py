@@ -1088,8 +1088,8 @@ class UkfDclNode(Node):
     def _on_version(self, src: int, version: dict) -> list[Send]:
         """A neighbour's beacon showed its version: ask it for commits we lack. An orphan has
         no cross-covariances for those commits to touch, so it just takes the version."""
-        if not self._behind(version):
-            return []
+        if self.k < 0 or not self._behind(version):
+            return []  # not started: there is no tick to ask in (it asks at its first tick's beacons)
         if self.orphan:
             for a, s in version.items():
                 self.version[a] = max(self.version.get(a, 0), s)
@@ -1101,6 +1101,8 @@ class UkfDclNode(Node):
 
     def _on_sync(self, src: int, msg: DclSync) -> list[Send]:
         """Send what the asker lacks from our log, oldest first, in frames of bounded size."""
+        if self.k < 0:
+            return self.drop("not-started", f"sync from {src}")
         missing = [c for c in self.log if c.seq > msg.version.get(c.key[0], 0)]
         out, batch, weight = [], [], 0
         for c in missing:
