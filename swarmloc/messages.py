@@ -15,6 +15,11 @@ from swarmloc.wire import MAX_ID, Array, Bool, Float, Int, ListOf, MapOf, Nested
 
 Id = Annotated[int, Int(0, MAX_ID)]
 Tick = Annotated[int, Int(0, 2**40)]
+# Sensor readings: a physical quantity (m, s, m/s, rad, rad/s, m/s^2) or its std beyond this is
+# no reading but a fault or a forgery; refused at decoding, so an estimator never squares it.
+SENSOR = 1e6
+Std = Annotated[float, Float(lo=0.0, hi=SENSOR)]
+Reading = Annotated[float, Float(lo=-SENSOR, hi=SENSOR)]
 Vec = Annotated[np.ndarray, Array(1)]
 Mat = Annotated[np.ndarray, Array(2)]
 SqMat = Annotated[np.ndarray, Array(2, square=True)]
@@ -38,22 +43,22 @@ class Clock:
 
 @message("odometry")
 class OdometryMsg:
-    dt: Annotated[float, Float(lo=0.0)]
-    speed: Annotated[float, Float()]
-    heading: Annotated[float, Float()]
-    speed_std: Annotated[float, Float(lo=0.0)]
-    heading_std: Annotated[float, Float(lo=0.0)]
+    dt: Std
+    speed: Reading
+    heading: Reading
+    speed_std: Std
+    heading_std: Std
     # The gyro's turn rate over the step and its std: what a model with heading in its state
     # (planar-pose) reads instead of `heading`.
-    turn_rate: Annotated[float, Float()] = 0.0
-    turn_rate_std: Annotated[float, Float(lo=0.0)] = 0.0
+    turn_rate: Reading = 0.0
+    turn_rate_std: Std = 0.0
 
 
 @message("range")
 class RangeMsg:
     target: Id
-    range: Annotated[float, Float(lo=0.0)]
-    std: Annotated[float, Float(lo=0.0)]
+    range: Std
+    std: Std
 
 
 @message("gnss")
@@ -62,8 +67,8 @@ class GnssMsg:
     for a 3D fix, of the vertical one (None: the horizontal std)."""
 
     position: Vec
-    std: Annotated[float, Float(lo=0.0)]
-    std_vertical: Annotated[float | None, Optional(Float(lo=0.0))] = None
+    std: Std
+    std_vertical: Annotated[float | None, Optional(Float(lo=0.0, hi=SENSOR))] = None
 
 
 @message("imu")
@@ -72,8 +77,8 @@ class ImuMsg:
     (rad/s) and mean specific force (m/s^2) over `dt` seconds, body axes FLU:
     [gx, gy, gz, ax, ay, az]."""
 
-    dt: Annotated[float, Float(lo=0.0)]
-    samples: Mat
+    dt: Std
+    samples: Annotated[np.ndarray, Array(2, bound=SENSOR)]
 
 
 @message("pseudoranges")
@@ -83,7 +88,7 @@ class PseudorangesMsg:
 
     sats: Mat
     rho: Vec
-    std: Annotated[float, Float(lo=0.0)]
+    std: Std
 
 
 @message("relpos")
@@ -92,8 +97,8 @@ class RelPosMsg:
     (m, swarm ENU frame), each component with std `std`."""
 
     target: Id
-    z: Vec
-    std: Annotated[float, Float(lo=0.0)]
+    z: Annotated[np.ndarray, Array(1, bound=SENSOR)]
+    std: Std
 
 
 @message("target_range")
@@ -103,8 +108,8 @@ class TargetRangeMsg:
     and with probability `sensors.target_range.probability` per tick."""
 
     target: Id
-    range: Annotated[float, Float(lo=0.0)]
-    std: Annotated[float, Float(lo=0.0)]
+    range: Std
+    std: Std
 
 
 @message("range_bearing")
@@ -114,10 +119,10 @@ class RangeBearingMsg:
     scenario's `world.landmarks` map (Sensors.landmarks, the landmarks' own id space)."""
 
     target: Id
-    range: Annotated[float, Float(lo=0.0)]
-    bearing: Annotated[float, Float()]
-    range_std: Annotated[float, Float(lo=0.0)]
-    bearing_std: Annotated[float, Float(lo=0.0)]
+    range: Std
+    bearing: Reading
+    range_std: Std
+    bearing_std: Std
 
 
 @message("align")

@@ -32,6 +32,10 @@ MAX_WIRE_BYTES = 64 * 1024
 MAX_ARRAY_ELEMENTS = 4096  # an array's default limit on each dimension and on its element count
 MAX_COLLECTION = 1024
 MAX_ID = 2**31 - 1  # agent ids fit a signed 32-bit integer
+MAX_MAGNITUDE = 1e12
+"""Largest absolute value of any float on the wire (scalar or array element), unless its field
+says less: far beyond any position (m), time (s) or variance the estimators meet, and far
+enough below float64's 1.8e308 that squaring and summing such values never overflows."""
 
 
 class WireError(ValueError):
@@ -69,8 +73,13 @@ class Int(Spec):
 
 
 class Float(Spec):
-    def __init__(self, finite: bool = True, lo: float | None = None):
+    """A float; finite ones within [lo, hi] and at most MAX_MAGNITUDE in absolute value."""
+
+    def __init__(self, finite: bool = True, lo: float | None = None, hi: float | None = None):
         self.finite, self.lo = finite, lo
+        self.hi = MAX_MAGNITUDE if hi is None and finite else hi
+        if finite and self.lo is None:
+            self.lo = -MAX_MAGNITUDE
 
     def encode(self, v):
         return float(v)
@@ -83,6 +92,8 @@ class Float(Spec):
             raise WireError(f"{path}: not finite")
         if self.lo is not None and v < self.lo:
             raise WireError(f"{path}: {v} below {self.lo}")
+        if self.hi is not None and v > self.hi:
+            raise WireError(f"{path}: {v} above {self.hi}")
         return v
 
 
@@ -109,7 +120,8 @@ class Array(Spec):
     """Float array as {dtype, shape, data}: `ndim` fixed; `dtype` "<f8" (float64, the default) or
     "<f4" (float32), the only one accepted for the field; each dimension within its `dims` range
     (default 0..MAX_ARRAY_ELEMENTS each) and at most `max_elements` elements (default
-    MAX_ARRAY_ELEMENTS); every value finite.
+    MAX_ARRAY_ELEMENTS); every value finite and at most `bound` (default MAX_MAGNITUDE) in
+    absolute value.
 
     Encoding converts to the field's dtype: a float64 value in a "<f4" field is rounded to the
     nearest float32 (IEEE round to nearest, ties to even; numpy's astype), and one beyond the
@@ -120,13 +132,15 @@ class Array(Spec):
     DTYPES = {"<f8": 8, "<f4": 4}
 
     def __init__(self, ndim: int, square: bool = False, dtype: str = "<f8",
-                 dims: tuple[tuple[int, int], ...] | None = None, max_elements: int = MAX_ARRAY_ELEMENTS):
+                 dims: tuple[tuple[int, int], ...] | None = None, max_elements: int = MAX_ARRAY_ELEMENTS,
+                 bound: float = MAX_MAGNITUDE):
         if dtype not in self.DTYPES:
             raise TypeError(f"array dtype {dtype!r} not supported (only {sorted(self.DTYPES)})")
         dims = tuple((0, MAX_ARRAY_ELEMENTS) for _ in range(ndim)) if dims is None else tuple(map(tuple, dims))
         if len(dims) != ndim or not all(0 <= lo <= hi for lo, hi in dims):
             raise TypeError(f"array dims {dims!r} must give ndim = {ndim} ranges lo <= hi")
         self.ndim, self.square, self.dtype, self.dims, self.max_elements = ndim, square, dtype, dims, max_elements
+        self.bound = bound
 
     def encode(self, v):
         with np.errstate(over="ignore"):  # float64 beyond the float32 range: +-inf, documented above
@@ -155,6 +169,8 @@ class Array(Spec):
         a = np.frombuffer(data, dtype=self.dtype).reshape(shape).copy()
         if not np.isfinite(a).all():
             raise WireError(f"{path}: non-finite values")
+        if a.size and np.abs(a).max() > self.bound:
+            raise WireError(f"{path}: a value beyond +-{self.bound:g}")
         return a
 
 

@@ -17,10 +17,12 @@ reproduces) and bounded in wall time by pytest-timeout, which turns a hang into 
 from __future__ import annotations
 
 import copy
+import dataclasses
 import functools
 import math
+import random
+import struct
 import time
-from dataclasses import dataclass
 
 import msgpack
 import numpy as np
@@ -32,6 +34,7 @@ from netsim.sim import Simulation
 from swarmloc import messages as M
 from swarmloc import scenario as S
 from swarmloc import wire
+from swarmloc.messages import SENSOR
 from swarmloc.estimators import REGISTRY, make_nodes
 from swarmloc.node import Outbox, Send, Timer, Timers
 
@@ -121,35 +124,21 @@ def test_every_registered_type_has_a_sample_that_decodes():
         assert wire.decode(pack(tree)).type == name
 
 
-# --------------------------------------------------------------------------- strategies
+# --------------------------------------------------------------------------- generators
+#
+# Hypothesis spends about 0.5 ms on an example however small, and a hundred times that on a
+# recursive strategy of thirty leaves: 10,000 structured inputs per decoder would take minutes.
+# So the structured decoder inputs come from a seeded generator, and hypothesis draws only the
+# seed (the falsifying example it reports is the generated value, so a failure still shows its
+# input and reproduces).
 
-INT64 = st.integers(-(2**63), 2**64 - 1)  # what MessagePack can carry
-SCALARS = st.one_of(
-    st.none(), st.booleans(), INT64, st.sampled_from([0, -1, 2**31, 2**63 - 1, -(2**63), 2**64 - 1]),
-    st.floats(), st.sampled_from([math.nan, math.inf, -math.inf, -0.0, 1e308, 5e-324]),
-    st.text(max_size=20), st.binary(max_size=40),
-    st.builds(msgpack.ExtType, st.integers(0, 127), st.binary(max_size=16)),
-    st.builds(msgpack.Timestamp, st.integers(0, 2**34 - 1), st.integers(0, 999_999_999)),
-)
+SPECIAL_INTS = [0, 1, -1, 2**31 - 1, 2**31, 2**40 + 1, 2**63 - 1, -(2**63), 2**64 - 1]
+SPECIAL_FLOATS = [math.nan, math.inf, -math.inf, -0.0, 1e308, -1e308, 5e-324, 1e-300]
 FIELD_NAMES = sorted({f for cls in wire.REGISTRY.values() for f in cls._specs} | wire.Envelope.KEYS | {"dtype", "shape"})
-KEYS = st.one_of(st.sampled_from(FIELD_NAMES), st.text(max_size=8), INT64, st.booleans(), st.none(), st.floats())
-MSGPACK = st.recursive(
-    SCALARS, lambda inner: st.one_of(st.lists(inner, max_size=6), st.dictionaries(KEYS, inner, max_size=6)),
-    max_leaves=30)
-
-
-def _typed_body(name):
-    # A body with (some of) the type's own field names, each holding anything.
-    return st.fixed_dictionaries({}, optional={f: MSGPACK for f in wire.REGISTRY[name]._specs})
-
-
-ENVELOPES = st.fixed_dictionaries(
-    {"v": st.one_of(st.just(wire.SCHEMA_VERSION), MSGPACK),
-     "type": st.one_of(st.sampled_from(TYPES), MSGPACK),
-     "src": st.one_of(st.integers(0, wire.MAX_ID), MSGPACK),
-     "seq": st.one_of(st.integers(0, 2**63 - 1), MSGPACK),
-     "body": st.one_of(st.sampled_from(TYPES).flatmap(_typed_body), MSGPACK)},
-    optional={"dst": st.one_of(st.none(), st.integers(0, wire.MAX_ID), MSGPACK), "extra": MSGPACK})
+DTYPES = ["<f4", "<f8", ">f8", "<i8", "f8", "|O", "<c16", "", "<f2"]
+HOSTILE_CONSTANTS = [None, True, False, 0, -1, 2**31, 2**63 - 1, -(2**63), 2**64 - 1, math.nan, math.inf, -math.inf,
+                     -0.0, 1e308, 5e-324, "", "x" * 600, b"", b"\x00" * 9, [], {}, [[[]]], {"dtype": "<f8"}]
+TEXT_RANGES = [(0x20, 0x7F), (0x0, 0x20), (0x80, 0x800), (0x800, 0xD800), (0xE000, 0x110000)]  # no surrogates
 
 
 def paths(tree, prefix=()):
@@ -181,84 +170,139 @@ def is_array(v) -> bool:
     return isinstance(v, dict) and set(v) == {"dtype", "shape", "data"}
 
 
-HOSTILE_VALUES = st.one_of(
-    st.sampled_from([None, True, False, 0, -1, 2**31, 2**63 - 1, -(2**63), 2**64 - 1, math.nan, math.inf, -math.inf,
-                     -0.0, 1e308, 5e-324, "", "x" * 600, b"", b"\x00" * 9, [], {}, [[[]]], {"dtype": "<f8"}]),
-    MSGPACK)
+class Gen:
+    """MessagePack data from a seed: anything at all, envelope-shaped, or a valid frame with
+    one position made wrong."""
+
+    def __init__(self, seed: int):
+        self.r = random.Random(seed)
+
+    def text(self, n=20):
+        lo, hi = self.r.choice(TEXT_RANGES)
+        return "".join(chr(self.r.randrange(lo, hi)) for _ in range(self.r.randrange(n + 1)))
+
+    def scalar(self):
+        r = self.r
+        return [
+            lambda: None, lambda: r.random() < 0.5, lambda: r.randint(-(2**63), 2**64 - 1),
+            lambda: r.choice(SPECIAL_INTS), lambda: r.randint(-3, 300),
+            lambda: struct.unpack("<d", r.randbytes(8))[0],  # any double: NaN payloads, subnormals
+            lambda: r.choice(SPECIAL_FLOATS), lambda: r.uniform(-1e3, 1e3), self.text,
+            lambda: r.randbytes(r.randrange(41)),
+            lambda: msgpack.ExtType(r.randrange(128), r.randbytes(r.randrange(17))),
+            lambda: msgpack.Timestamp(r.randrange(2**34), r.randrange(10**9)),
+            lambda: r.choice(FIELD_NAMES), lambda: r.choice(TYPES), lambda: r.choice(DTYPES),
+        ][r.randrange(15)]()
+
+    def key(self):
+        k = self.r.choice(FIELD_NAMES) if self.r.random() < 0.5 else self.scalar()
+        return k if isinstance(k, (str, int, float, bool, bytes, type(None))) else 0
+
+    def value(self, depth=0):
+        r = self.r
+        if depth >= 4 or r.random() < 0.55:
+            return self.scalar()
+        n = r.randrange(7)
+        if r.random() < 0.5:
+            return [self.value(depth + 1) for _ in range(n)]
+        return {self.key(): self.value(depth + 1) for _ in range(n)}
+
+    def typed_body(self, name=None):
+        """A body with (some of) a type's own field names, each holding anything."""
+        specs = wire.REGISTRY[name or self.r.choice(TYPES)]._specs
+        return {f: self.value(1) for f in specs if self.r.random() < 0.8}
+
+    def envelope(self):
+        r = self.r
+        pick = lambda good, p=0.7: good() if r.random() < p else self.value(1)
+        env = {"v": pick(lambda: wire.SCHEMA_VERSION), "type": pick(lambda: r.choice(TYPES)),
+               "src": pick(lambda: r.randrange(wire.MAX_ID + 1)), "seq": pick(lambda: r.randrange(2**63)),
+               "body": None}
+        env["body"] = self.typed_body(env["type"] if isinstance(env["type"], str) and env["type"] in wire.REGISTRY else None) \
+            if r.random() < 0.7 else self.value()
+        if r.random() < 0.5:
+            env["dst"] = pick(lambda: r.choice([None, r.randrange(wire.MAX_ID + 1)]))
+        if r.random() < 0.1:
+            env[self.key()] = self.value(1)
+        return env
+
+    def hostile(self):
+        return self.r.choice(HOSTILE_CONSTANTS) if self.r.random() < 0.5 else self.value(1)
+
+    def near_valid(self, trees=None):
+        """A valid frame of some type with one position made wrong (type, value, size, shape,
+        nesting, a key missing or added); the header is a position too."""
+        r, trees = self.r, trees or VALID_TREES
+        tree = copy.deepcopy(trees[r.choice(sorted(trees))])
+        path = r.choice(list(paths(tree)))
+        here = get(tree, path)
+        kind = r.choice(["replace", "delete", "extra", "oversize", "nest", "array", "array", "retype"])
+        if kind == "replace" or (kind == "delete" and not path):
+            return put(tree, path, self.hostile())
+        if kind == "delete":
+            del get(tree, path[:-1])[path[-1]]
+            return tree
+        if kind == "extra":
+            if isinstance(here, dict):
+                here[self.key()] = self.value(1)
+            elif isinstance(here, list):
+                here.append(copy.deepcopy(here[0]) if here and r.random() < 0.5 else self.value(1))
+            else:
+                put(tree, path, [here, self.value(1)])
+            return tree
+        if kind == "oversize":
+            n = r.choice([65, 1025, 4097, 20_000])
+            if isinstance(here, (list, str, bytes)) and len(here):
+                big = (here * (n // len(here) + 1))[:n]
+            elif isinstance(here, dict):
+                big = {**here, **{f"k{i}": i for i in range(n)}}
+            else:
+                big = [here] * n
+            return put(tree, path, big)
+        if kind == "nest":
+            v = here
+            for _ in range(r.randrange(1, 300)):
+                v = [v] if r.random() < 0.5 else {"body": v}
+            return put(tree, path, v)
+        if kind == "array":
+            arrays = [p for p in paths(tree) if is_array(get(tree, p))]
+            if not arrays:
+                return put(tree, path, self.hostile())
+            a = get(tree, r.choice(arrays))
+            what = r.choice(["dtype", "shape", "data"])
+            if what == "dtype":
+                a["dtype"] = r.choice(DTYPES) if r.random() < 0.7 else self.scalar()
+            elif what == "shape":
+                a["shape"] = [r.randint(-3, 5000) if r.random() < 0.8 else self.scalar() for _ in range(r.randrange(5))] \
+                    if r.random() < 0.8 else self.scalar()
+            else:
+                size = 4 if a["dtype"] == "<f4" else 8
+                n = len(a["data"]) // size
+                with np.errstate(over="ignore"):
+                    special = np.array([r.choice([math.nan, math.inf, -math.inf, 1e300])], a["dtype"]).tobytes()
+                a["data"] = r.choice([
+                    r.randbytes(r.randrange(65)), a["data"][:-1] or b"\x00", a["data"] + b"\x00" * size,
+                    special * max(n, 1), special + a["data"][size:],
+                    a["data"][:size * r.randrange(n + 1)] + special + a["data"][size * (r.randrange(n + 1) + 1):],
+                ])
+            return tree
+        # retype: the same value in a neighbouring type (int <-> float <-> bool, str <-> bytes)
+        if isinstance(here, bool):
+            return put(tree, path, int(here))
+        if isinstance(here, int):
+            return put(tree, path, r.choice([float(here), here != 0, str(here)]))
+        if isinstance(here, float):
+            return put(tree, path, int(here) if math.isfinite(here) else None)
+        if isinstance(here, str):
+            return put(tree, path, here.encode())
+        if isinstance(here, bytes):
+            return put(tree, path, list(here))
+        return put(tree, path, self.hostile())
 
 
-@st.composite
-def near_valid(draw, trees=VALID_TREES):
-    """A valid frame of some type with one position made wrong (type, value, size, shape,
-    nesting, a key missing or added); the header is a position too."""
-    name = draw(st.sampled_from(sorted(trees)))
-    tree = copy.deepcopy(trees[name])
-    path = draw(st.sampled_from(list(paths(tree))))
-    here = get(tree, path)
-    kind = draw(st.sampled_from(["replace", "delete", "extra", "oversize", "nest", "array", "retype"]))
-    if kind == "replace" or (kind == "delete" and not path):
-        return put(tree, path, draw(HOSTILE_VALUES))
-    if kind == "delete":
-        del get(tree, path[:-1])[path[-1]]
-        return tree
-    if kind == "extra":
-        if isinstance(here, dict):
-            here[draw(KEYS)] = draw(MSGPACK)
-        elif isinstance(here, list):
-            here.append(copy.deepcopy(here[0]) if here and draw(st.booleans()) else draw(MSGPACK))
-        else:
-            put(tree, path, [here, draw(MSGPACK)])
-        return tree
-    if kind == "oversize":
-        n = draw(st.sampled_from([65, 1025, 4097, 20_000]))
-        if isinstance(here, (list, str, bytes)) and len(here):
-            big = (here * (n // len(here) + 1))[:n]
-        elif isinstance(here, dict):
-            big = {**here, **{f"k{i}": i for i in range(n)}}
-        else:
-            big = [here] * n
-        return put(tree, path, big)
-    if kind == "nest":
-        v = here
-        for _ in range(draw(st.integers(1, 300))):
-            v = [v] if draw(st.booleans()) else {"body": v}
-        return put(tree, path, v)
-    if kind == "array":
-        arrays = [p for p in paths(tree) if is_array(get(tree, p))]
-        if not arrays:
-            return put(tree, path, draw(HOSTILE_VALUES))
-        a = get(tree, draw(st.sampled_from(arrays)))
-        what = draw(st.sampled_from(["dtype", "shape", "data"]))
-        if what == "dtype":
-            a["dtype"] = draw(st.one_of(st.sampled_from(["<f4", "<f8", ">f8", "<i8", "f8", "|O", "<c16", ""]), SCALARS))
-        elif what == "shape":
-            a["shape"] = draw(st.one_of(st.lists(st.one_of(st.integers(-3, 5000), SCALARS), max_size=4), SCALARS))
-        else:
-            size = 4 if a["dtype"] == "<f4" else 8
-            n = len(a["data"]) // size if isinstance(a["data"], bytes) else 0
-            special = np.array([math.nan, math.inf, -math.inf, 1e300], dtype=a["dtype"] if size in (4, 8) else "<f8")
-            a["data"] = draw(st.one_of(
-                st.binary(max_size=64),
-                st.just(a["data"][:-1] if n else b"\x00"),
-                st.just(a["data"] + b"\x00" * size),
-                st.integers(0, 3).map(lambda i: special[i].tobytes() * max(n, 1)),
-                st.integers(0, 3).map(lambda i: special[i].tobytes() + a["data"][size:]),
-            ))
-        return tree
-    # retype: the same value in a neighbouring type (int <-> float <-> bool, str <-> bytes)
-    if isinstance(here, bool):
-        return put(tree, path, int(here))
-    if isinstance(here, int):
-        return put(tree, path, draw(st.sampled_from([float(here), here != 0, str(here)])))
-    if isinstance(here, float):
-        return put(tree, path, int(here) if math.isfinite(here) else None)
-    if isinstance(here, str):
-        return put(tree, path, here.encode())
-    if isinstance(here, bytes):
-        return put(tree, path, list(here))
-    return put(tree, path, draw(HOSTILE_VALUES))
-
-
+SEEDS = st.integers(0, 2**64 - 1)
+ANY_MSGPACK = SEEDS.map(lambda s: Gen(s).value() if s % 3 == 0 else Gen(s).envelope())
+NEAR_VALID = SEEDS.map(lambda s: Gen(s).near_valid())
 VALID_FRAMES = [pack(VALID_TREES[name]) for name in TYPES]
 
 
@@ -292,32 +336,39 @@ def check_decode(data, **kw):
 # --------------------------------------------------------------------------- decoder
 
 @pytest.mark.timeout(120)
-def test_decode_arbitrary_bytes():
+def test_decoders_on_arbitrary_bytes():
+    """wire.decode (three ways), decode_send_time and decode_delivery on the same inputs."""
     runs = []
 
     @fuzz_settings(DECODER_EXAMPLES)
-    @given(st.one_of(st.binary(max_size=128), st.binary(max_size=128).map(lambda b: b"\x86" + b), corrupted()))
+    @given(st.one_of(st.binary(max_size=128), st.binary(max_size=128).map(lambda b: b"\x86" + b), corrupted(),
+                     st.binary(min_size=8, max_size=8), st.binary(min_size=16, max_size=16), st.none()))
     @example(b"\x91" * 60_000 + b"\xc0")  # nesting far beyond msgpack's own stack
     @example(b"\xdb\xff\xff\xff\xff")  # str32 claiming 4 GiB
     @example(b"\xdd\xff\xff\xff\xff")  # array32 claiming 4 G items
-    @example(b"\x00" * (wire.MAX_WIRE_BYTES + 1))
     @example(b"\xc7\x03\xff\x00\x00\x00")  # a timestamp extension of impossible length
+    @example(b"\x00" * (wire.MAX_WIRE_BYTES + 1))
     def check(data):
         runs.append(1)
         check_decode(data)
-        check_decode(bytearray(data), body=False)
-        check_decode(memoryview(data), expect=(M.Sensors,))
+        if data is not None:
+            check_decode(bytearray(data), body=False)
+            check_decode(memoryview(data), expect=(M.Sensors,))
+        t = wire.decode_send_time(data)
+        assert t is None or isinstance(t, float)
+        d = wire.decode_delivery(data)
+        assert d is None or (isinstance(d[0], int) and d[0] >= 0 and (d[1] is None or isinstance(d[1], float)))
 
     check()
     assert len(runs) >= DECODER_EXAMPLES
 
 
-@pytest.mark.timeout(180)
+@pytest.mark.timeout(120)
 def test_decode_any_msgpack_structure():
     runs, envelopes = [], []
 
     @fuzz_settings(DECODER_EXAMPLES)
-    @given(st.one_of(MSGPACK, ENVELOPES))
+    @given(ANY_MSGPACK)
     def check(tree):
         runs.append(1)
         data = pack(tree)
@@ -329,12 +380,12 @@ def test_decode_any_msgpack_structure():
     assert len(runs) >= DECODER_EXAMPLES
 
 
-@pytest.mark.timeout(180)
+@pytest.mark.timeout(120)
 def test_decode_near_valid_frames():
     runs, accepted = [], []
 
     @fuzz_settings(DECODER_EXAMPLES)
-    @given(near_valid())
+    @given(NEAR_VALID)
     def check(tree):
         runs.append(1)
         data = pack(tree)
@@ -351,24 +402,6 @@ def test_decode_near_valid_frames():
     check()
     assert len(runs) >= DECODER_EXAMPLES
     assert len(set(accepted)) > len(TYPES) // 2  # mutations that keep a frame valid happen too, for most types
-
-
-@pytest.mark.timeout(60)
-def test_attachment_decoders_on_arbitrary_bytes():
-    runs = []
-
-    @fuzz_settings(DECODER_EXAMPLES)
-    @given(st.one_of(st.none(), st.binary(max_size=24), st.binary(min_size=8, max_size=8),
-                     st.binary(min_size=16, max_size=16)))
-    def check(data):
-        runs.append(1)
-        t = wire.decode_send_time(data)
-        assert t is None or isinstance(t, float)
-        d = wire.decode_delivery(data)
-        assert d is None or (isinstance(d[0], int) and d[0] >= 0 and (d[1] is None or isinstance(d[1], float)))
-
-    check()
-    assert len(runs) >= DECODER_EXAMPLES
 
 
 # --------------------------------------------------------------------------- estimator nodes
@@ -414,7 +447,7 @@ def test_cases_cover_every_estimator_the_agents_run():
     assert {name for name, _ in CASES.values()} == set(REGISTRY.running())
 
 
-@dataclass
+@dataclasses.dataclass
 class Context:
     """A node as it was just before it received a real frame of the swarm (from `src`)."""
 
@@ -424,7 +457,7 @@ class Context:
     next_frame: M.Sensors  # the node's sensor frame of the tick after
 
 
-@dataclass
+@dataclasses.dataclass
 class World:
     ids: list
     contexts: list
@@ -547,7 +580,8 @@ def hostile_body(draw, tree: dict, ids: list, k: int):
     tree = copy.deepcopy(tree)
     ints = sorted({0, 1, 2, 3, 999, wire.MAX_ID, 2**40, max(k - 1, 0), max(k, 0), k + 1, k + 2, *ids})
     for _ in range(draw(st.integers(1, 4))):
-        body_paths = [p for p in paths(tree["body"]) if not p or not is_array(get(tree["body"], p[:-1]))]
+        body = tree["body"]
+        body_paths = [p for p in paths(body) if not any(is_array(get(body, p[:i])) for i in range(len(p)))]
         path = ("body",) + draw(st.sampled_from(body_paths))
         here = get(tree, path)
         if is_array(here):
@@ -594,8 +628,13 @@ def radio_input(draw, case: str):
 NODE_EXAMPLES = {"dnbp": 150, "ukf-dcl": 400, "ukf-dcl/pose": 400}  # the rest: 250
 
 
+# Known bugs (see the reproducers at the end): these cases fail the estimate's sanity.
+PSD_BROKEN_BY_CHAIN = pytest.mark.xfail(strict=True, reason=(
+    "UKF-DCL applies a dcl.token's L/Y/Pz as sent: a token whose finite Y is off by 1.0 in one entry leaves the "
+    "receiver's covariance with a negative eigenvalue (no PSD check before the update is taken)"))
 @pytest.mark.timeout(120)
-@pytest.mark.parametrize("case", sorted(CASES))
+@pytest.mark.parametrize("case", [pytest.param(c, marks=PSD_BROKEN_BY_CHAIN) if c == "ukf-dcl" else c
+                                  for c in sorted(CASES)])
 def test_node_survives_hostile_radio_messages(case):
     world(case)  # build outside the examples
     decoded = []
@@ -616,7 +655,8 @@ def test_node_survives_hostile_radio_messages(case):
         check_node(node, "on its next tick")
 
     check()
-    assert len(decoded) >= NODE_EXAMPLES.get(case, 250)  # most hostile messages got past the decoder
+    # Most hostile messages got past the decoder (its bounds refuse a fraction): the node was tested.
+    assert len(decoded) >= NODE_EXAMPLES.get(case, 250) // 2
 
 
 # --------------------------------------------------------------------------- the agent daemon
@@ -631,7 +671,7 @@ def daemon_input(draw, case: str):
     if how == "bytes":
         return kind, draw(st.binary(max_size=256))
     if how == "near-valid":
-        return kind, pack(draw(near_valid()))
+        return kind, pack(draw(NEAR_VALID))
     if kind in ("sensors", "measurements"):
         tree = draw(st.sampled_from(w.sensor_trees))
         return kind, pack(draw(hostile_body(tree, w.ids, tree["body"]["k"])))
@@ -669,3 +709,50 @@ def test_daemon_counts_or_handles_every_input(case):
         check_node(node, "after its next frame")
 
     check()
+
+
+# --------------------------------------------------------------------------- known bugs, minimal
+
+POSE_CASES = ["csl-ctl", "ekf/pose", "ekf-ci/pose", "ukf-dcl/pose"]
+
+
+def _stepped_on(case, **odometry):
+    """A node of the case at the end of its run, stepped on its next frame with odometry changed
+    (through the wire, so the frame is one the decoder accepts)."""
+    ctx = next(c for c in world(case).contexts if c.frame is None)
+    f = ctx.next_frame
+    frame = dataclasses.replace(f, odometry=dataclasses.replace(f.odometry, **odometry))
+    node = copy.deepcopy(ctx.node)
+    node.step(wire.decode(wire.encode(frame, 0, 1)).body)
+    return node
+
+
+@pytest.mark.parametrize("case", ["ekf/pose", "ekf-ci/pose", "ukf-dcl/pose"])
+@pytest.mark.parametrize("odometry", [{"speed_std": 1e300}, {"turn_rate_std": 1e300}, {"speed": 1e300},
+                                      {"dt": 1e300}, {"speed": -2e6}])
+def test_implausible_odometry_is_refused_by_the_decoder(case, odometry):
+    """Found by this file: a std of 1e300 raised OverflowError in the planar-pose time update,
+    a speed or dt of 1e300 made the estimate inf/nan. Sensor readings are bounded on the wire
+    (messages.SENSOR), so such a frame is malformed and never reaches a node."""
+    with pytest.raises(wire.WireError, match="above|below"):
+        _stepped_on(case, **odometry)
+
+
+@pytest.mark.parametrize("case", POSE_CASES)
+@pytest.mark.parametrize("odometry", [{"speed": SENSOR}, {"dt": SENSOR}, {"speed_std": SENSOR},
+                                      {"turn_rate_std": SENSOR}])
+def test_the_largest_accepted_odometry_keeps_the_estimate_finite(case, odometry):
+    check_node(_stepped_on(case, **odometry), f"after odometry {odometry}")
+
+
+def test_implausible_imu_samples_are_refused_and_the_largest_accepted_keep_the_estimate_finite():
+    """uas-ins: IMU samples of 1e300 made the estimate inf/nan (found by this file)."""
+    ctx = next(c for c in world("ekf-centre").contexts if c.frame is None and c.node.model.state_dim)
+    f = ctx.next_frame
+    huge = dataclasses.replace(f, imu=dataclasses.replace(f.imu, samples=f.imu.samples * 0 + 1e300))
+    with pytest.raises(wire.WireError, match="beyond"):
+        wire.decode(wire.encode(huge, 0, 1))
+    largest = dataclasses.replace(f, imu=dataclasses.replace(f.imu, samples=np.sign(f.imu.samples + 0.5) * SENSOR))
+    node = copy.deepcopy(ctx.node)
+    node.step(wire.decode(wire.encode(largest, 0, 1)).body)
+    check_node(node, f"after IMU samples of {SENSOR:g}")
