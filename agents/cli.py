@@ -55,6 +55,9 @@ app = typer.Typer(cls=_Swarmloc, add_completion=False, no_args_is_help=True,
                   help="swarmloc: cooperative localization over a real (or emulated) network.")
 inject_app = typer.Typer(no_args_is_help=True, help="Inject a fault into a running swarm (applies from the next tick).")
 app.add_typer(inject_app, name="inject")
+keys_app = typer.Typer(no_args_is_help=True, help="The swarm's key file: frames sealed and opened with it "
+                       "(docs/security.md).")
+app.add_typer(keys_app, name="keys")
 # Negative numbers are arguments here (`inject loss -0.1`, `inject jammer -40 10`), not options;
 # the fault validation then says what is out of range.
 NUMBERS = {"ignore_unknown_options": True}
@@ -452,6 +455,61 @@ def router(
         pass
     finally:
         session.close()
+
+
+KeyPath = typer.Argument(..., help="the key file")
+
+
+def _keyring(path: Path):
+    from swarmloc.auth import Keyring
+
+    try:
+        return Keyring.load(path)
+    except ValueError as exc:
+        raise Failure(str(exc), 2) from None
+
+
+def _fingerprint(key: bytes) -> str:
+    import hashlib
+
+    return hashlib.sha256(key).hexdigest()[:16]
+
+
+@keys_app.command("new")
+def keys_new(path: Path = KeyPath, swarm: str = SwarmOpt,
+             force: bool = typer.Option(False, "--force", help="replace an existing key file")):
+    """Write a new key file for a swarm (mode 0600): copy it to every member, by a channel you trust."""
+    from swarmloc.auth import Keyring
+
+    if path.exists() and not force:
+        raise Failure(f"{path} exists; give --force to replace it (every member then needs the new one)", 2)
+    ring = Keyring.generate(swarm)
+    try:
+        ring.save(path)
+    except OSError as exc:
+        raise Failure(f"cannot write {path}: {exc.strerror or exc}") from None
+    typer.echo(f"wrote {path}: swarm {swarm}, key {ring.current} ({_fingerprint(ring.keys[ring.current])}), mode 0600")
+
+
+@keys_app.command("show")
+def keys_show(path: Path = KeyPath):
+    """Show a key file's swarm and its keys' fingerprints (never the keys)."""
+    ring = _keyring(path)
+    typer.echo(f"{path}: swarm {ring.swarm}")
+    for kid, key in sorted(ring.keys.items()):
+        typer.echo(f"  key {kid}  sha256 {_fingerprint(key)}" + ("  (current)" if kid == ring.current else ""))
+
+
+@keys_app.command("rotate")
+def keys_rotate(path: Path = KeyPath):
+    """Replace the swarm's key with a new one (after a member or a copy of the file is lost): frames
+    sealed with the old key are refused from then on, so every member needs the new file."""
+    ring = _keyring(path)
+    old = ring.current
+    kid = ring.rotate()
+    ring.save(path)
+    typer.echo(f"{path}: key {old} dropped, key {kid} ({_fingerprint(ring.keys[kid])}) current; copy the file to every "
+               "member and restart it")
 
 
 # A command of its own, not `agent install-service`: `agent` takes options, not subcommands.

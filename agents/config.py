@@ -223,6 +223,23 @@ class Outputs(_Strict):
         return None if v is None else _base(info) / v.expanduser()
 
 
+class Security(_Strict):
+    keys: Path | None = Field(None, description="the swarm's key file (`swarmloc keys new`; mode 0600): every frame "
+                              "sealed and opened with it (docs/security.md); relative to this file's directory. "
+                              "null: frames are not authenticated, which the agent warns about at start")
+
+    @field_validator("keys")
+    @classmethod
+    def _readable(cls, v, info: ValidationInfo):
+        if v is None:
+            return None
+        v = _base(info) / v.expanduser()
+        from swarmloc.auth import Keyring
+
+        Keyring.load(v)  # a ValueError names the file and what is wrong with it
+        return v
+
+
 class SwarmClock(_Strict):
     epoch: FiniteFloat | None = Field(None, description="UNIX time (s, the system clock: keep it NTP- or "
                                       "GPS-disciplined) of the swarm's tick 0: mavlink ticks end at epoch + k * tick "
@@ -248,6 +265,7 @@ class AgentFileConfig(_Strict):
                                   description="where sensor data comes from; default: the swarm's sensor key")
     outputs: Outputs = Field(default_factory=Outputs)
     clock: SwarmClock = Field(default_factory=SwarmClock, description="the swarm clock ticks are numbered from")
+    security: Security = Field(default_factory=Security, description="frame authentication")
     state_dir: Path | None = Field(None, description="directory of the checkpoint agent-<id>.state.npy (relative to "
                                    "this file's directory; created at start); null: no checkpoint")
 
@@ -336,9 +354,27 @@ class AgentFileConfig(_Strict):
                               "sent on")
         return v
 
+    @field_validator("security")
+    @classmethod
+    def _keys_of_this_swarm(cls, v, info: ValidationInfo):
+        swarm = info.data.get("swarm")
+        if v.keys is not None and swarm is not None:
+            from swarmloc.auth import Keyring
+
+            ring = Keyring.load(v.keys)
+            if ring.swarm != swarm:
+                raise _FieldError(("keys",), f"{v.keys} holds the keys of swarm {ring.swarm!r}, not {swarm!r}")
+        return v
+
     @property
     def sensor_key(self) -> str:
         return wire.Keys(self.swarm).sensors(self.id)
+
+    @property
+    def keyring(self):
+        from swarmloc.auth import Keyring
+
+        return None if self.security.keys is None else Keyring.load(self.security.keys)
 
     @property
     def state_file(self) -> Path | None:
@@ -432,7 +468,7 @@ def daemon_config(cfg: AgentFileConfig) -> AgentConfig:
                                               if s.kind == "zenoh" and s.role == "measurements"),
                        sources=tuple(s for s in cfg.sensors if s.kind != "zenoh"),
                        publish_swarm=cfg.outputs.swarm, mavlink_output=cfg.outputs.mavlink,
-                       estimate_log=cfg.outputs.log, epoch=cfg.clock.epoch)
+                       estimate_log=cfg.outputs.log, epoch=cfg.clock.epoch, keyring=cfg.keyring)
 
 
 def summary(cfg: AgentFileConfig, spec: NodeSpec) -> list[str]:
@@ -468,6 +504,9 @@ def summary(cfg: AgentFileConfig, spec: NodeSpec) -> list[str]:
         ("sensors", "; ".join(map(source, cfg.sensors))), ("outputs", "; ".join(outputs) or "none"),
         ("clock", "own: ticks from the first sample" if cfg.clock.epoch is None else
          f"swarm: tick 0 at UNIX {cfg.clock.epoch:.3f} ({_utc(cfg.clock.epoch)})"),
-        ("checkpoint", str(cfg.state_file) if cfg.state_file else "none"), ("node", spec.factory),
+        ("checkpoint", str(cfg.state_file) if cfg.state_file else "none"),
+        ("security", f"frames authenticated with {cfg.security.keys}" if cfg.security.keys else
+         "none: frames are not authenticated"),
+        ("node", spec.factory),
     ]
     return [f"{k:<11}{v}" for k, v in rows]

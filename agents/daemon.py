@@ -37,7 +37,7 @@ import numpy as np
 import zenoh
 
 from agents import sources as sensor_sources
-from swarmloc import exit_on_sigterm, wire
+from swarmloc import auth, exit_on_sigterm, wire
 from swarmloc.messages import Clock, Done, EstimateMsg, LinkNack, Reply, Sensors, TargetEstimateMsg
 from swarmloc.node import Node, NodeSpec, Outbox, Timers, estimate_of
 
@@ -71,6 +71,7 @@ class AgentConfig:
     mavlink_output: object | None = None  # agents.config.MavlinkOutput: the estimate to the flight controller
     estimate_log: Path | None = None  # every estimate appended as a JSON line (docs/deploy.md#the-estimate-log)
     epoch: float | None = None  # the swarm clock: UNIX time of tick 0, which polled sources number ticks from
+    keyring: object | None = None  # swarmloc.auth.Keyring: frames sealed and opened with it (docs/security.md)
 
 
 class AgentDaemon:
@@ -106,6 +107,9 @@ class AgentDaemon:
         # Node timers: lockstep arms and fires them in modelled time (the tick's t, before its
         # sensor frame), real time in wall seconds scaled to modelled ones by the clock's speed.
         self.timers = Timers()
+        # Authentication at the I/O boundary: every frame out sealed, every frame in opened first.
+        self.sealer = auth.Sealer(cfg.keyring, node.id) if cfg.keyring is not None else None
+        self.opener = auth.Opener(cfg.keyring) if cfg.keyring is not None else None
         self.model_t = 0.0  # modelled time of the last sensor frame
         self.speed, self.clock_t, self.clock_wall = 1.0, 0.0, time.monotonic()  # real time: the last clock frame
 
@@ -195,7 +199,7 @@ class AgentDaemon:
 
     def _reply_stats(self, query) -> None:
         # Reply on our own key, not the query's: a wildcard query must not consolidate agents away.
-        query.reply(self._stats_key, wire.encode(Reply(True, "", self.stats()), self.node.id, 0))
+        query.reply(self._stats_key, self._seal(wire.encode(Reply(True, "", self.stats()), self.node.id, 0)))
 
     # ---------------------------------------------------------------- loop
 
@@ -214,7 +218,8 @@ class AgentDaemon:
                 unacked = False
                 self._publish_estimate()
                 # Always acknowledge, even a rejected input: lockstep must not wait on us for nothing.
-                self._pub_done.put(wire.encode(Done(self.node.k, self.consumed, self.sent), self.node.id, self.handled))
+                self._pub_done.put(self._seal(wire.encode(Done(self.node.k, self.consumed, self.sent), self.node.id,
+                                                          self.handled)))
             wait = min([0.5, *(s.wait(time.monotonic()) for s in self.sources)])
             if not self.node.synchronous and (due := self.timers.next_due()) is not None:
                 wait = min(wait, max(0.0, due - self._now()))
@@ -254,12 +259,24 @@ class AgentDaemon:
         if n <= 10 or n % 1000 == 0:
             log.warning("agent %s drops a frame: %s (%d so far): %s", self.node.id, reason, n, why)
 
+    def _seal(self, data: bytes) -> bytes:
+        return data if self.sealer is None else self.sealer.seal(data)
+
     def _envelope(self, kind: str, data: bytes, expect=None) -> wire.Envelope | None:
-        """A decoded frame, or None, refused and counted (docs/wire.md, "Receiver rules")."""
+        """A decoded frame, or None, refused and counted (docs/wire.md, "Receiver rules";
+        docs/security.md: with a keyring the frame is authenticated before it is decoded)."""
+        sender = None
+        if self.opener is not None:
+            try:
+                data, sender = self.opener.open(data)
+            except auth.AuthError as exc:
+                return self._reject(f"auth-{exc.reason}", f"{kind}: {exc}")
         try:
             env = wire.decode(data, expect=expect)
         except wire.WireError as exc:
             return self._reject("malformed", f"{kind}: {exc}")
+        if sender is not None and env.src != sender:
+            return self._reject("auth-src-mismatch", f"{kind}: sealed by {sender}, says src {env.src}")
         if kind in ("sensors", "clock") and not self.cfg.direct and env.src != NETSIM_ID:
             return self._reject("src-mismatch", f"{kind} from {env.src}")
         return env
@@ -313,7 +330,13 @@ class AgentDaemon:
             # netsim numbers what it delivers to us 1, 2, 3... on one publisher: anything else on
             # our key is not a delivery (a copy, a replay, a stranger) and must not be counted
             # as consumed, or lockstep would wait for frames that never come.
-            delivery = wire.decode_delivery(attachment.to_bytes() if attachment is not None else None)
+            attached = attachment.to_bytes() if attachment is not None else None
+            if self.opener is not None and attached is not None:
+                try:  # netsim's tag on the delivery number: nobody else can hand us the next one
+                    attached = auth.check_delivery(self.cfg.keyring, self.node.id, attached, data)
+                except auth.AuthError as exc:
+                    return self._reject(f"auth-{exc.reason}", "radio delivery") or []
+            delivery = wire.decode_delivery(attached)
             if delivery is None:
                 return self._reject("rx-unnumbered", "radio frame without a delivery number") or []
             n, sent = delivery
@@ -458,7 +481,7 @@ class AgentDaemon:
         tx = self.outbox.encode(send)
         if tx is None:
             return self._reject("oversize-out", f"{send.msg.TYPE} to {send.dst}")
-        data = tx.data
+        data = self._seal(tx.data)
         if self.cfg.direct:
             key = self.keys.radio_rx(BROADCAST if send.dst is None else send.dst)
             pub = self._pub_tx.get(key)
@@ -490,8 +513,8 @@ class AgentDaemon:
             return
         nis = np.array(e.nis, float).reshape(-1, 2) if e.nis else None
         targets = [TargetEstimateMsg(o, m, P) for o, m, P in e.targets]
-        self._pub_est.put(wire.encode(EstimateMsg(e.k, self.node.algorithm, e.mean, e.cov, nis, targets),
-                                      self.node.id, self.handled))
+        self._pub_est.put(self._seal(wire.encode(EstimateMsg(e.k, self.node.algorithm, e.mean, e.cov, nis, targets),
+                                                 self.node.id, self.handled)))
 
 
 # ---------------------------------------------------------------------------- entry points
@@ -529,6 +552,9 @@ def serve(node: Node, cfg: AgentConfig) -> None:
         log.warning("agent %s: %d sensor sources (%s); frames are not merged: each must carry whole ticks, and the "
                     "node steps on whichever tick comes next (docs/deploy.md#sensor-sources)", node.id, len(inputs),
                     ", ".join(inputs))
+    if cfg.direct and cfg.keyring is None:
+        log.warning("agent %s: no key file: frames are neither authenticated nor checked; anyone on the network "
+                    "can speak for this swarm (docs/security.md)", node.id)
     if not cfg.publish_swarm:
         log.info("agent %s: outputs.swarm is false: no estimate on %s", node.id, keys.estimate(node.id))
     try:
@@ -549,13 +575,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--swarm", default="default")
     p.add_argument("--connect", action="append", required=True, help="Zenoh endpoint (repeatable)")
     p.add_argument("--state-file", type=Path)
+    p.add_argument("--keys", type=Path, help="the swarm's key file: frames sealed and opened with it")
     p.add_argument("-v", "--verbose", action="store_true")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO if a.verbose else logging.WARNING,
                         format=f"%(asctime)s agent-{a.id} %(levelname)s %(message)s")
     try:
         node = load_node(a.spec, a.id)
-        serve(node, AgentConfig(swarm=a.swarm, connect=tuple(a.connect), state_file=a.state_file))
+        keyring = None if a.keys is None else auth.Keyring.load(a.keys)
+        serve(node, AgentConfig(swarm=a.swarm, connect=tuple(a.connect), state_file=a.state_file, keyring=keyring))
     except (ValueError, OpenError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2 if isinstance(exc, ValueError) else 3

@@ -17,6 +17,7 @@ from pathlib import Path
 from netsim import tune_gc
 from netsim.server import NetsimServer, ServerConfig, SetupError
 from swarmloc import scenario as scenarios
+from swarmloc.auth import Keyring
 
 
 def main(argv=None) -> int:
@@ -32,6 +33,7 @@ def main(argv=None) -> int:
                         "before the next tick (its launcher restarts crashed agents)")
     p.add_argument("--join-timeout", type=float, default=30.0)
     p.add_argument("--tick-timeout", type=float, default=10.0)
+    p.add_argument("--keys", type=Path, default=None, help="the swarm's key file: every frame sealed and opened with it")
     p.add_argument("-v", "--verbose", action="store_true")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO if a.verbose else logging.WARNING,
@@ -40,14 +42,15 @@ def main(argv=None) -> int:
         sc = scenarios.load(a.scenario)
         if a.seed is not None:
             sc = sc.with_overrides(seed=a.seed)
-    except scenarios.ScenarioError as exc:
+        keyring = None if a.keys is None else Keyring.load(a.keys)
+    except (scenarios.ScenarioError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     exit_on_sigterm()
     tune_gc()
     cfg = ServerConfig(swarm=a.swarm, listen=tuple(a.listen or ["tcp/127.0.0.1:7447"]), out=a.out,
                        join_timeout=a.join_timeout, tick_timeout=a.tick_timeout, plots=not a.no_plots,
-                       await_rejoin=a.await_rejoin)
+                       await_rejoin=a.await_rejoin, keyring=keyring)
     try:
         m = NetsimServer(sc, cfg).run()
     except scenarios.ScenarioError as exc:

@@ -27,7 +27,7 @@ import numpy as np
 import zenoh
 
 from netsim.sim import Simulation
-from swarmloc import wire
+from swarmloc import auth, wire
 from swarmloc.faults import FaultError, inverse_of, nodes_named, parse_fault
 from swarmloc.messages import Clock, Control, Done, EstimateMsg, Event, LinkMsg, LinkNack, Links, Reply, Truth
 from swarmloc.node import Estimate, RadioRx, RadioTx
@@ -53,6 +53,7 @@ class ServerConfig:
     tick_timeout: float = 10.0  # s of silence before a lagging agent is declared unresponsive
     plots: bool = True
     await_rejoin: bool = False  # lockstep: an agent that went away (a crash) is restarted by the launcher
+    keyring: object | None = None  # swarmloc.auth.Keyring: every frame sealed and opened with it (docs/security.md)
     on_tick: Callable[[int, int], None] | None = field(default=None, repr=False)
 
 
@@ -76,7 +77,7 @@ class NetsimServer:
         # Envelope seq of the last accepted `done` and `estimate` per agent: each increases.
         self.last_seq = {kind: {a: -1 for a in self.ids} for kind in ("done", "estimate")}
         self.tick_timeouts = 0  # times a lockstep tick waited out tick_timeout
-        self.rejected: dict[str, Counter[str]] = {k: Counter() for k in ("tx", "done", "estimate", "alive")}
+        self.rejected: dict[str, Counter[str]] = {k: Counter() for k in ("tx", "done", "estimate", "alive", "control")}
         self.agent_events: list[dict] = []  # agents leaving (crash, kill) or joining after tick 0
         # Lockstep always resolves frames in rounds, in (sender, seq) order, never on arrival:
         # with arrival order a node could meet a token and a log replay in either order.
@@ -91,6 +92,9 @@ class NetsimServer:
         self.t0 = 0.0
         self.finished = False  # the last tick is over: agents leaving now are not events
         self.awaited: set[int] = set()  # agents lockstep waits for before its next tick
+        ring = cfg.keyring
+        self.sealer = auth.Sealer(ring, NETSIM_ID) if ring is not None else None
+        self.opener = auth.Opener(ring) if ring is not None else None
 
     # ---------------------------------------------------------------- zenoh plumbing
 
@@ -123,9 +127,22 @@ class NetsimServer:
     def close(self) -> None:
         self.session.close()
 
+    def _seal(self, data: bytes) -> bytes:
+        return data if self.sealer is None else self.sealer.seal(data)
+
+    def _open(self, kind: str, key: str, payload: bytes) -> tuple[bytes, int | None] | None:
+        """(frame, sealer) of an authentic payload, or (payload, None) without a keyring; None
+        if it is not authentic, refused and counted as `auth-<reason>`."""
+        if self.opener is None:
+            return payload, None
+        try:
+            return self.opener.open(payload)
+        except auth.AuthError as exc:
+            return self._refuse(kind, key, f"auth-{exc.reason}", str(exc))
+
     def _put(self, pub, msg) -> None:
         self.seq += 1
-        pub.put(wire.encode(msg, NETSIM_ID, self.seq))
+        pub.put(self._seal(wire.encode(msg, NETSIM_ID, self.seq)))
 
     # ---------------------------------------------------------------- inputs
 
@@ -146,12 +163,16 @@ class NetsimServer:
             return self._refuse(kind, key, "unknown-agent")
         if payload is None:
             return self._refuse(kind, key, "oversize")
+        opened = self._open(kind, key, payload)
+        if opened is None:
+            return None
+        frame, sealer = opened
         try:
-            env = wire.decode(payload, expect=None if cls is None else (cls,), body=cls is not None)
+            env = wire.decode(frame, expect=None if cls is None else (cls,), body=cls is not None)
         except wire.WireError as exc:
             return self._refuse(kind, key, "malformed", str(exc))
-        if env.src != aid:
-            return self._refuse(kind, key, "src-mismatch", f"src {env.src}")
+        if env.src != aid or (sealer is not None and sealer != aid):
+            return self._refuse(kind, key, "src-mismatch", f"src {env.src}, sealed by {sealer}")
         return aid, env
 
     def _newer(self, kind: str, key: str, payload: bytes | None):
@@ -254,20 +275,30 @@ class NetsimServer:
             return
         if rx.nack is not None:
             self.seq += 1
-            data, sent = wire.encode(rx.nack, NETSIM_ID, self.seq), None
-        else:
+            data, sent = self._seal(wire.encode(rx.nack, NETSIM_ID, self.seq)), None
+        else:  # the sender's frame as it sealed it
             data, sent = rx.data, self.sent_at.get((rx.src, rx.seq))
         self.delivered[r] += 1
-        self.pub_rx[r].put(data, attachment=wire.encode_delivery(self.delivered[r], sent if sent == sent else None))
+        attachment = wire.encode_delivery(self.delivered[r], sent if sent == sent else None)
+        if self.sealer is not None:
+            attachment += auth.delivery_tag(self.cfg.keyring, r, attachment, data)
+        self.pub_rx[r].put(data, attachment=attachment)
 
     # ---------------------------------------------------------------- control
 
     def _control(self, query) -> None:
         def reply(ok: bool, error: str = "", data: dict | None = None):
-            query.reply(query.key_expr, wire.encode(Reply(ok, error[:500], data or {}), NETSIM_ID, 0))
+            query.reply(query.key_expr, self._seal(wire.encode(Reply(ok, error[:500], data or {}), NETSIM_ID, 0)))
 
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        if self.opener is not None:
+            try:
+                payload, _ = self.opener.open(payload)
+            except auth.AuthError as exc:
+                self._refuse("control", self.keys.control, f"auth-{exc.reason}", str(exc))
+                return reply(False, f"not authenticated ({exc.reason}): control requests need the swarm's key")
         try:
-            req = wire.decode(query.payload.to_bytes() if query.payload is not None else b"", expect=(Control,)).body
+            req = wire.decode(payload, expect=(Control,)).body
         except wire.WireError as exc:
             return reply(False, f"bad request: {exc}")
         if not isinstance(req.args, dict):
@@ -465,8 +496,11 @@ class NetsimServer:
             if r.ok is None:
                 continue
             try:
-                out[str(wire.Keys.agent_of(str(r.ok.key_expr)))] = wire.decode(r.ok.payload.to_bytes(), expect=(Reply,)).body.data
-            except (wire.WireError, ValueError) as exc:
+                data = r.ok.payload.to_bytes()
+                if self.opener is not None:
+                    data, _ = self.opener.open(data)
+                out[str(wire.Keys.agent_of(str(r.ok.key_expr)))] = wire.decode(data, expect=(Reply,)).body.data
+            except (wire.WireError, ValueError) as exc:  # auth.AuthError is a ValueError
                 log.warning("bad stats reply: %s", exc)
             if len(out) >= expected:
                 break  # do not sit out the timeout once everyone has answered

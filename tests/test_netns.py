@@ -8,6 +8,7 @@ Needs root (network namespaces); skipped otherwise."""
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import shutil
@@ -52,12 +53,18 @@ class Lan:
         Lan.made += 1
         tag = f"{os.getpid() % 1000}{Lan.made}"
         self.bridge = f"slbr{tag}"
-        self.net = f"10.231.{(os.getpid() + Lan.made) % 250}"
         self.ns = {h: f"slns{tag}-{h}" for h in hosts}
         self.up = []
-        ip("link", "add", self.bridge, "type", "bridge")
-        self.up.append(("link", "del", self.bridge))
-        ip("addr", "add", f"{self.net}.254/24", "dev", self.bridge)
+        # A subnet no other bridge has: test processes side by side (another checkout's suite)
+        # each take their own, picked and claimed under one lock.
+        with open("/tmp/swarmloc-netns.lock", "a") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            used = subprocess.run(["ip", "-o", "-4", "addr", "show"], check=True, capture_output=True, text=True).stdout
+            start = (os.getpid() + Lan.made) % 250
+            self.net = next(net for net in (f"10.231.{(start + i) % 250}" for i in range(250)) if f" {net}." not in used)
+            ip("link", "add", self.bridge, "type", "bridge")
+            self.up.append(("link", "del", self.bridge))
+            ip("addr", "add", f"{self.net}.254/24", "dev", self.bridge)
         ip("link", "set", self.bridge, "up")
         for h, ns in self.ns.items():
             ip("netns", "add", ns)

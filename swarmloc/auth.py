@@ -1,0 +1,219 @@
+"""Frame authentication (docs/security.md): every frame on a swarm's keys carries an HMAC-SHA256
+tag with the swarm's key and a per-sender counter, verified before its body is decoded.
+
+Sans I/O: `Sealer.seal` turns a wire-encoded frame into an authenticated one, `Opener.open`
+gives the frame back or raises AuthError naming why not. The drivers (the agent daemon, netsim,
+the control client) call them at their I/O boundary; estimators never see them.
+
+Layout: the frame, then a trailer of TRAILER.size = 31 bytes, little-endian:
+
+    sender   u32   who sealed it (an agent's id, 0 for netsim, OPERATOR for the CLI)
+    counter  u64   the sender's counter, strictly increasing over its frames
+    kid      u8    which of the keyring's keys
+    tag      16 B  HMAC-SHA256(key, DOMAIN + swarm + 0x00 + frame + sender + counter + kid)[:16]
+    magic    2 B   b"S1"
+
+The counter starts at the sender's UNIX time in microseconds and counts up from there, so a
+restarted sender goes on above everything it sent before (while its clock does not go back
+and it sends under a million frames a second). A receiver keeps, per sender, the highest
+counter seen and a window of WINDOW below it: a counter seen before, or older than the window,
+is a replay.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import hmac
+import json
+import os
+import secrets
+import stat
+import struct
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+TRAILER = struct.Struct("<IQB16s2s")
+MAGIC = b"S1"
+DOMAIN = b"swarmloc/frame/1/"
+TAG_BYTES = 16
+KEY_BYTES = 32
+WINDOW = 1024
+"""Counters below a sender's highest still accepted once: frames of one sender on different
+keys (netsim's clock, sensors and radio) may arrive in another order than they were sent."""
+MAX_SENDERS = 4096
+"""Senders a receiver keeps windows for; the least recently heard is forgotten first (its old
+frames then count as too old, not as new)."""
+OPERATOR = 2**31 - 1  # the sender id of the CLI (wire.MAX_ID): control requests
+KEYRING_VERSION = 1
+
+
+class AuthError(ValueError):
+    """A frame that is not authentic: `reason` is the counter's name (`auth-<reason>`)."""
+
+    def __init__(self, reason: str, detail: str = ""):
+        super().__init__(f"{reason}: {detail}" if detail else reason)
+        self.reason = reason
+
+
+@dataclass
+class Keyring:
+    """The swarm's keys: kid -> 32 random bytes; frames are sealed with `current`. A key
+    file holds exactly this (docs/security.md#key-files)."""
+
+    swarm: str
+    keys: dict[int, bytes]
+    current: int
+
+    @classmethod
+    def generate(cls, swarm: str) -> Keyring:
+        return cls(swarm, {1: secrets.token_bytes(KEY_BYTES)}, 1)
+
+    def rotate(self) -> int:
+        """A new current key; every older one is dropped (a key that left with a revoked
+        member must open nothing more). Returns the new kid."""
+        kid = self.current % 255 + 1
+        self.keys, self.current = {kid: secrets.token_bytes(KEY_BYTES)}, kid
+        return kid
+
+    def to_json(self) -> str:
+        return json.dumps({"version": KEYRING_VERSION, "swarm": self.swarm, "current": self.current,
+                           "keys": {str(k): base64.b64encode(v).decode() for k, v in self.keys.items()}}, indent=1)
+
+    @classmethod
+    def from_json(cls, text: str, source: str = "key file") -> Keyring:
+        try:
+            d = json.loads(text)
+            if d.get("version") != KEYRING_VERSION:
+                raise ValueError(f"version {d.get('version')!r}, this swarmloc reads {KEYRING_VERSION}")
+            keys = {int(k): base64.b64decode(v, validate=True) for k, v in d["keys"].items()}
+            ring = cls(str(d["swarm"]), keys, int(d["current"]))
+        except (ValueError, KeyError, TypeError, AttributeError) as exc:
+            raise ValueError(f"{source}: not a swarmloc key file ({exc})") from None
+        if ring.current not in keys or any(not 1 <= k <= 255 or len(v) != KEY_BYTES for k, v in keys.items()):
+            raise ValueError(f"{source}: not a swarmloc key file (bad key ids or lengths)")
+        return ring
+
+    def save(self, path: Path) -> None:
+        """Written whole (a temporary file renamed over it), readable by its owner only."""
+        path = Path(path)
+        tmp = path.with_name(path.name + ".tmp")
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        with os.fdopen(fd, "w") as f:
+            f.write(self.to_json())
+        os.chmod(tmp, 0o600)
+        os.replace(tmp, path)
+
+    @classmethod
+    def load(cls, path: Path) -> Keyring:
+        """The key file at `path`; ValueError if it is unreadable, malformed, or readable by
+        anyone but its owner (as ssh refuses such a private key)."""
+        path = Path(path)
+        try:
+            mode = path.stat().st_mode
+            text = path.read_text()
+        except OSError as exc:
+            raise ValueError(f"{path}: cannot read the key file: {exc.strerror or exc}") from None
+        if mode & (stat.S_IRWXG | stat.S_IRWXO):
+            raise ValueError(f"{path}: key file is accessible by others (mode {stat.S_IMODE(mode):04o}); "
+                             f"chmod 600 {path}")
+        return cls.from_json(text, str(path))
+
+
+def _tag(key: bytes, swarm: bytes, frame: bytes, header: bytes) -> bytes:
+    return hmac.new(key, DOMAIN + swarm + b"\0" + frame + header, hashlib.sha256).digest()[:TAG_BYTES]
+
+
+class Sealer:
+    """One sender's side: seals its frames with the keyring's current key and its counter."""
+
+    def __init__(self, keyring: Keyring, sender: int):
+        self.keyring, self.sender = keyring, int(sender)
+        self._swarm = keyring.swarm.encode()
+        self.counter = time.time_ns() // 1000
+
+    def seal(self, frame: bytes) -> bytes:
+        self.counter += 1
+        kid = self.keyring.current
+        header = TRAILER.pack(self.sender, self.counter, kid, b"", b"")[:13]
+        return frame + header + _tag(self.keyring.keys[kid], self._swarm, frame, header) + MAGIC
+
+
+@dataclass
+class _Window:
+    highest: int
+    seen: int = 1  # bit i: counter highest - i has been accepted
+
+    def admit(self, counter: int) -> str | None:
+        """Accept `counter` (None) or say why not."""
+        if counter > self.highest:
+            shift = counter - self.highest
+            self.seen = ((self.seen << shift) | 1) & ((1 << WINDOW) - 1) if shift < WINDOW else 1
+            self.highest = counter
+            return None
+        back = self.highest - counter
+        if back >= WINDOW:
+            return "too-old"
+        if self.seen >> back & 1:
+            return "replayed"
+        self.seen |= 1 << back
+        return None
+
+
+@dataclass
+class Opener:
+    """One receiver's side: verifies the tag, then the sender's counter against its window."""
+
+    keyring: Keyring
+    windows: OrderedDict = field(default_factory=OrderedDict)  # sender -> _Window, least recent first
+
+    def __post_init__(self):
+        self._swarm = self.keyring.swarm.encode()
+
+    def open(self, data: bytes) -> tuple[bytes, int]:
+        """(frame, sender) of an authentic frame not seen before; AuthError otherwise."""
+        if len(data) < TRAILER.size or data[-2:] != MAGIC:
+            raise AuthError("unauthenticated", "no trailer")
+        frame, trailer = data[:-TRAILER.size], data[-TRAILER.size:]
+        sender, counter, kid, tag, _ = TRAILER.unpack(trailer)
+        key = self.keyring.keys.get(kid)
+        if key is None:
+            raise AuthError("unknown-key", f"key {kid}")
+        if not hmac.compare_digest(tag, _tag(key, self._swarm, frame, trailer[:13])):
+            raise AuthError("bad-tag", f"sender {sender}")
+        window = self.windows.get(sender)
+        if window is None:
+            if len(self.windows) >= MAX_SENDERS:
+                self.windows.popitem(last=False)
+            self.windows[sender] = _Window(counter)
+        else:
+            self.windows.move_to_end(sender)
+            why = window.admit(counter)
+            if why is not None:
+                raise AuthError(why, f"sender {sender} counter {counter}")
+        return frame, sender
+
+
+DELIVERY_DOMAIN = b"swarmloc/delivery/1/"
+
+
+def delivery_tag(keyring: Keyring, receiver: int, attachment: bytes, data: bytes) -> bytes:
+    """netsim's tag on one delivery: its attachment (the receiver's delivery number and the send
+    time, wire.encode_delivery) bound to the receiver and to the frame's bytes, so nobody else
+    can hand an agent a frame under the next delivery number."""
+    msg = DELIVERY_DOMAIN + keyring.swarm.encode() + b"\0" + struct.pack("<I", receiver) + attachment + data
+    return hmac.new(keyring.keys[keyring.current], msg, hashlib.sha256).digest()[:TAG_BYTES]
+
+
+def check_delivery(keyring: Keyring, receiver: int, attachment: bytes, data: bytes) -> bytes:
+    """The delivery attachment without its tag, if the tag is netsim's; AuthError otherwise."""
+    if len(attachment) <= TAG_BYTES:
+        raise AuthError("unauthenticated", "delivery without a tag")
+    head, tag = attachment[:-TAG_BYTES], attachment[-TAG_BYTES:]
+    for key in keyring.keys.values():
+        msg = DELIVERY_DOMAIN + keyring.swarm.encode() + b"\0" + struct.pack("<I", receiver) + head + data
+        if hmac.compare_digest(tag, hmac.new(key, msg, hashlib.sha256).digest()[:TAG_BYTES]):
+            return head
+    raise AuthError("bad-delivery", f"to {receiver}")

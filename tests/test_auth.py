@@ -1,0 +1,189 @@
+"""Frame authentication (swarmloc/auth.py): key files, seal and open, replay windows, and the
+agent daemon's and netsim's use of them at their I/O boundary (sans I/O: no Zenoh session)."""
+
+import os
+import stat
+
+import numpy as np
+import pytest
+
+from agents.daemon import AgentConfig, AgentDaemon
+from swarmloc import auth, wire
+from swarmloc.auth import AuthError, Keyring, Opener, Sealer
+from swarmloc.messages import Beacon, Clock, OdometryMsg, Sensors
+
+
+def test_a_key_file_is_its_owners_only(tmp_path):
+    ring = Keyring.generate("field")
+    path = tmp_path / "swarm.key"
+    ring.save(path)
+    assert stat.S_IMODE(path.stat().st_mode) == 0o600
+    back = Keyring.load(path)
+    assert back == ring and len(back.keys[1]) == 32
+    os.chmod(path, 0o644)
+    with pytest.raises(ValueError, match="accessible by others.*chmod 600"):
+        Keyring.load(path)
+    os.chmod(path, 0o600)
+    path.write_text('{"version": 1, "swarm": "field", "current": 2, "keys": {"1": "AAAA"}}')
+    with pytest.raises(ValueError, match="not a swarmloc key file"):
+        Keyring.load(path)
+
+
+def test_seal_and_open():
+    ring = Keyring.generate("field")
+    sealer, opener = Sealer(ring, 3), Opener(ring)
+    frame = wire.encode(Clock(5, 2.5, "lockstep", 0.5), 3, 1)
+    sealed = sealer.seal(frame)
+    assert len(sealed) == len(frame) + auth.TRAILER.size
+    assert opener.open(sealed) == (frame, 3)
+    with pytest.raises(AuthError) as e:
+        opener.open(sealed)  # the same frame again
+    assert e.value.reason == "replayed"
+    tampered = bytearray(sealer.seal(frame))
+    tampered[3] ^= 1
+    with pytest.raises(AuthError) as e:
+        opener.open(bytes(tampered))
+    assert e.value.reason == "bad-tag"
+    with pytest.raises(AuthError) as e:
+        opener.open(frame)
+    assert e.value.reason == "unauthenticated"
+    other = Keyring.generate("field")  # same swarm name, another key
+    with pytest.raises(AuthError) as e:
+        opener.open(Sealer(other, 3).seal(frame))
+    assert e.value.reason == "bad-tag"
+    renamed = Keyring("elsewhere", dict(ring.keys), ring.current)  # the key, another swarm
+    with pytest.raises(AuthError) as e:
+        opener.open(Sealer(renamed, 3).seal(frame))
+    assert e.value.reason == "bad-tag"
+
+
+def test_the_window_takes_reordering_and_refuses_what_is_too_old():
+    ring = Keyring.generate("s")
+    sealer, opener = Sealer(ring, 1), Opener(ring)
+    frames = [sealer.seal(b"x%d" % i) for i in range(auth.WINDOW + 10)]
+    opener.open(frames[5])
+    opener.open(frames[2])  # older, not seen: accepted
+    opener.open(frames[-1])
+    with pytest.raises(AuthError) as e:
+        opener.open(frames[0])  # more than WINDOW below the highest
+    assert e.value.reason == "too-old"
+    opener.open(frames[-2])
+    with pytest.raises(AuthError) as e:
+        opener.open(frames[-2])
+    assert e.value.reason == "replayed"
+
+
+def test_a_restarted_sender_goes_on_above_what_it_sent():
+    ring = Keyring.generate("s")
+    opener = Opener(ring)
+    first = Sealer(ring, 4)
+    for _ in range(100):
+        opener.open(first.seal(b"f"))
+    again = Sealer(ring, 4)  # the agent restarted: its counter starts from the clock again
+    opener.open(again.seal(b"g"))
+
+
+def test_rotation_drops_the_old_key():
+    ring = Keyring.generate("s")
+    old = Sealer(Keyring("s", dict(ring.keys), ring.current), 2).seal(b"f")
+    kid = ring.rotate()
+    assert kid == 2 and list(ring.keys) == [2]
+    with pytest.raises(AuthError) as e:
+        Opener(ring).open(old)
+    assert e.value.reason == "unknown-key"
+
+
+def test_delivery_tags_bind_receiver_number_and_frame():
+    ring = Keyring.generate("s")
+    att = wire.encode_delivery(7, 1.5)
+    tag = auth.delivery_tag(ring, 3, att, b"frame")
+    assert auth.check_delivery(ring, 3, att + tag, b"frame") == att
+    for receiver, attachment, data in [(4, att, b"frame"), (3, wire.encode_delivery(8, 1.5), b"frame"),
+                                       (3, att, b"other")]:
+        with pytest.raises(AuthError):
+            auth.check_delivery(ring, receiver, attachment + tag, data)
+
+
+# ---------------------------------------------------------------------------- the daemon
+
+
+class Attachment:
+    def __init__(self, data: bytes):
+        self.data = data
+
+    def to_bytes(self) -> bytes:
+        return self.data
+
+
+def daemon(ring, direct=True):
+    from swarmloc.runner import make_nodes
+    from swarmloc.scenario import load
+
+    sc = load("wang2019")
+    node = make_nodes("ukf-dcl", sc, [1])[1]
+    return AgentDaemon(node, AgentConfig(direct=direct, publish_swarm=False, keyring=ring)), sc
+
+
+def sensors(k):
+    return Sensors(k, 0.5 * k, OdometryMsg(0.5 if k else 0.0, 1.0, 0.0, 0.5, 0.01), [])
+
+
+def test_the_daemon_takes_only_sealed_frames():
+    """A sealed sensor frame is stepped on; the same frame unsealed, sealed with another key,
+    sealed by another sender than its src, or replayed, is refused and counted, and changes
+    nothing."""
+    ring = Keyring.generate("default")
+    d, _ = daemon(ring)
+    netsim = Sealer(ring, 0)
+    d._handle("sensors", netsim.seal(wire.encode(sensors(0), 0, 1)), None)
+    assert d.node.k == 0
+    frame1 = netsim.seal(wire.encode(sensors(1), 0, 2))
+    before = d.node.estimate()
+    d._handle("sensors", wire.encode(sensors(1), 0, 2), None)
+    d._handle("sensors", Sealer(Keyring.generate("default"), 0).seal(wire.encode(sensors(1), 0, 2)), None)
+    d._handle("sensors", Sealer(ring, 7).seal(wire.encode(sensors(1), 0, 2)), None)
+    assert d.node.k == 0
+    np.testing.assert_array_equal(d.node.estimate().mean, before.mean)
+    d._handle("sensors", frame1, None)
+    d._handle("sensors", frame1, None)
+    assert d.node.k == 1
+    assert dict(d.rejected) == {"auth-unauthenticated": 1, "auth-bad-tag": 1, "auth-src-mismatch": 1,
+                                "auth-replayed": 1}
+
+
+def test_a_forged_delivery_number_is_refused_under_netsim():
+    """Under netsim the delivery number is netsim's, tagged for this receiver and this frame:
+    an authentic frame handed over by someone else under the next number is refused, and the
+    number stays netsim's to give."""
+    ring = Keyring.generate("default")
+    d, _ = daemon(ring, direct=False)
+    beacon = Sealer(ring, 2).seal(wire.encode(Beacon(0, np.zeros(2), np.eye(2), {}), 2, 1))
+    att = wire.encode_delivery(1, None)
+    d._handle("rx", beacon, Attachment(att))  # no tag
+    d._handle("rx", beacon, Attachment(att + b"\0" * auth.TAG_BYTES))  # a made-up tag
+    assert d.consumed == 0
+    d._handle("rx", beacon, Attachment(att + auth.delivery_tag(ring, 1, att, beacon)))
+    assert d.consumed == 1
+    assert dict(d.rejected) == {"auth-unauthenticated": 1, "auth-bad-delivery": 1}
+
+
+def test_netsim_routes_only_frames_sealed_by_the_agent_whose_key_they_are_on():
+    """The dcl.log forgery of the security issue, at netsim's door: a frame on radio/tx/2 that
+    says src 2 but is unsealed, sealed with another key, or sealed by agent 3, is refused and
+    counted; agent 2's own sealed frame is taken once."""
+    from netsim.server import NetsimServer, ServerConfig
+    from swarmloc.messages import DclLog
+    from swarmloc.scenario import load
+
+    ring = Keyring.generate("default")
+    server = NetsimServer(load("wang2019"), ServerConfig(keyring=ring))
+    key = server.keys.radio_tx(2)
+    frame = wire.encode(DclLog(3, []), 2, 1, 1)
+    for payload in (frame, Sealer(Keyring.generate("default"), 2).seal(frame), Sealer(ring, 3).seal(frame)):
+        assert server._from_agent("tx", key, payload) is None
+    sealed = Sealer(ring, 2).seal(frame)
+    aid, env = server._from_agent("tx", key, sealed)
+    assert (aid, env.src, env.type) == (2, 2, "dcl.log")
+    assert server._from_agent("tx", key, sealed) is None
+    assert dict(server.rejected["tx"]) == {"auth-unauthenticated": 1, "auth-bad-tag": 1, "src-mismatch": 1,
+                                           "auth-replayed": 1}
