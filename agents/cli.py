@@ -55,8 +55,8 @@ app = typer.Typer(cls=_Swarmloc, add_completion=False, no_args_is_help=True,
                   help="swarmloc: cooperative localization over a real (or emulated) network.")
 inject_app = typer.Typer(no_args_is_help=True, help="Inject a fault into a running swarm (applies from the next tick).")
 app.add_typer(inject_app, name="inject")
-keys_app = typer.Typer(no_args_is_help=True, help="The swarm's key file: frames sealed and opened with it "
-                       "(docs/security.md).")
+keys_app = typer.Typer(no_args_is_help=True, help="The swarm's keys: the frame key and the certificates of its "
+                       "members (docs/security.md).")
 app.add_typer(keys_app, name="keys")
 # Negative numbers are arguments here (`inject loss -0.1`, `inject jammer -40 10`), not options;
 # the fault validation then says what is out of range.
@@ -431,6 +431,11 @@ def router(
                                      help="Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)"),
     connect: Optional[list[str]] = typer.Option(None, "--connect", callback=_endpoints,
                                                 help="another router to join (repeatable)"),
+    keys: Optional[Path] = typer.Option(None, "--keys", help="the swarm's key directory: mutual TLS with its "
+                                        "router.pem, and access control (docs/security.md#transport)"),
+    agents: Optional[str] = typer.Option(None, "--agents", help="with --keys: the agent ids access control lets in, "
+                                         "e.g. 1,2,3 (revoked ones never)"),
+    direct: bool = typer.Option(False, "--direct", help="with --keys: agents talk to each other (no netsim)"),
     verbose: bool = typer.Option(False, "--verbose", "-v", help="log at INFO"),
 ):
     """Run a Zenoh router for a swarm of agents in client mode (docs/deploy.md#peers-and-routers)."""
@@ -439,15 +444,30 @@ def router(
     from agents.daemon import zenoh_message
     from swarmloc import exit_on_sigterm
 
+    conf = wire.zenoh_config("router", listen, connect or ())
+    if keys is not None:
+        from agents import tls
+
+        swarm = _keyring(keys).swarm
+        if agents is None:
+            raise Failure("--keys needs --agents: the ids access control lets in", 2)
+        ids = sorted(set(_ids(agents, "--agents")) - {int(m[6:]) for m in _revoked(keys) if m.startswith("agent-")})
+        try:
+            conf = json.dumps(tls.zenoh_acl(tls.zenoh_tls(conf, keys, "router"), swarm, ids, direct=direct))
+        except (ValueError, FileNotFoundError) as exc:
+            raise Failure(f"{keys}: {exc} (swarmloc keys add {keys} router --host ADDRESS)", 2) from None
+    elif agents is not None or direct:
+        raise Failure("--agents and --direct are for access control: give --keys", 2)
     exit_on_sigterm()
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING,
                         format="%(asctime)s router %(levelname)s %(message)s")
     try:
-        session = zenoh.open(zenoh.Config.from_json5(wire.zenoh_config("router", listen, connect or ())))
+        session = zenoh.open(zenoh.Config.from_json5(conf))
     except zenoh.ZError as exc:
         raise Failure(f"cannot start a Zenoh router on {', '.join(listen)}: {zenoh_message(exc)}") from None
-    typer.echo(f"router up on {', '.join(listen)}" + (f", joined to {', '.join(connect)}" if connect else "")
-               + "; Ctrl-C or SIGTERM stops it", err=True)
+    secured = "" if keys is None else f" (mutual TLS, access control for swarm {swarm}: agents {ids or 'none'})"
+    typer.echo(f"router up on {', '.join(json.loads(conf)['listen']['endpoints'])}{secured}"
+               + (f", joined to {', '.join(connect)}" if connect else "") + "; Ctrl-C or SIGTERM stops it", err=True)
     try:
         while True:  # timed: the exit SIGTERM raises needs the main thread awake
             time.sleep(0.5)
@@ -457,59 +477,120 @@ def router(
         session.close()
 
 
-KeyPath = typer.Argument(..., help="the key file")
+KeyDir = typer.Argument(..., help="the swarm's key directory")
+from swarmloc.auth import KEY_FILE  # noqa: E402  (the frame key's file in a key directory)
 
 
-def _keyring(path: Path):
+def _keyring(directory: Path):
     from swarmloc.auth import Keyring
 
     try:
-        return Keyring.load(path)
+        return Keyring.load(directory / KEY_FILE)
     except ValueError as exc:
         raise Failure(str(exc), 2) from None
 
 
-def _fingerprint(key: bytes) -> str:
+def _fingerprint(data: bytes) -> str:
     import hashlib
 
-    return hashlib.sha256(key).hexdigest()[:16]
+    return hashlib.sha256(data).hexdigest()[:16]
+
+
+def _member(name: str) -> str:
+    """A member's certificate name: `3` and `agent-3` are agent 3's."""
+    return f"agent-{name}" if name.isdigit() else name
 
 
 @keys_app.command("new")
-def keys_new(path: Path = KeyPath, swarm: str = SwarmOpt,
-             force: bool = typer.Option(False, "--force", help="replace an existing key file")):
-    """Write a new key file for a swarm (mode 0600): copy it to every member, by a channel you trust."""
+def keys_new(directory: Path = KeyDir, swarm: str = SwarmOpt):
+    """Create a swarm's key directory (mode 0700): the frame key (swarm.key) and the swarm's
+    certificate authority (ca.pem, ca.key) that `keys add` signs members' certificates with."""
+    from agents import tls
     from swarmloc.auth import Keyring
 
-    if path.exists() and not force:
-        raise Failure(f"{path} exists; give --force to replace it (every member then needs the new one)", 2)
-    ring = Keyring.generate(swarm)
+    if (directory / KEY_FILE).exists() or (directory / tls.CA_KEY).exists():
+        raise Failure(f"{directory} already holds a swarm's keys; `keys rotate` replaces the frame key", 2)
     try:
-        ring.save(path)
+        directory.mkdir(mode=0o700, parents=True, exist_ok=True)
+        ring = Keyring.generate(swarm)
+        ring.save(directory / KEY_FILE)
+        tls.new_ca(directory, swarm)
     except OSError as exc:
-        raise Failure(f"cannot write {path}: {exc.strerror or exc}") from None
-    typer.echo(f"wrote {path}: swarm {swarm}, key {ring.current} ({_fingerprint(ring.keys[ring.current])}), mode 0600")
+        raise Failure(f"cannot write {directory}: {exc.strerror or exc}") from None
+    typer.echo(f"{directory}: swarm {swarm}; frame key {ring.current} ({_fingerprint(ring.keys[ring.current])}) in "
+               f"{KEY_FILE}; certificate authority ca.pem, ca.key (keep ca.key here, give members ca.pem)")
 
 
-@keys_app.command("show")
-def keys_show(path: Path = KeyPath):
-    """Show a key file's swarm and its keys' fingerprints (never the keys)."""
-    ring = _keyring(path)
-    typer.echo(f"{path}: swarm {ring.swarm}")
-    for kid, key in sorted(ring.keys.items()):
-        typer.echo(f"  key {kid}  sha256 {_fingerprint(key)}" + ("  (current)" if kid == ring.current else ""))
+@keys_app.command("add")
+def keys_add(directory: Path = KeyDir,
+             name: str = typer.Argument(..., help="an agent id (3 or agent-3), netsim, operator or router"),
+             host: Optional[list[str]] = typer.Option(None, "--host", help="an address or DNS name the member "
+                                                      "listens on, put in its certificate (repeatable)")):
+    """Issue a member's certificate (NAME.pem, NAME.key, signed by the swarm's CA) for Zenoh TLS."""
+    from agents import tls
+
+    _keyring(directory)
+    member = _member(name)
+    try:
+        cert, key = tls.issue(directory, member, host or [])
+    except (ValueError, FileNotFoundError) as exc:
+        raise Failure(f"{directory}: {exc}", 2) from None
+    revoked = _revoked(directory)
+    if member in revoked:
+        revoked.remove(member)
+        (directory / "revoked.json").write_text(json.dumps(sorted(revoked)))
+    typer.echo(f"{cert}, {key}: give the member these, ca.pem and {KEY_FILE}")
+
+
+def _revoked(directory: Path) -> set[str]:
+    path = directory / "revoked.json"
+    return set(json.loads(path.read_text())) if path.exists() else set()
+
+
+@keys_app.command("revoke")
+def keys_revoke(directory: Path = KeyDir, name: str = typer.Argument(..., help="an agent id, netsim, operator or router")):
+    """Revoke a member: its certificate is deleted and listed as revoked (access control grants it
+    nothing), and the frame key is rotated, so what it holds opens nothing new."""
+    member = _member(name)
+    ring = _keyring(directory)
+    for suffix in (".pem", ".key"):
+        (directory / f"{member}{suffix}").unlink(missing_ok=True)
+    revoked = _revoked(directory) | {member}
+    (directory / "revoked.json").write_text(json.dumps(sorted(revoked)))
+    old, kid = ring.current, ring.rotate()
+    ring.save(directory / KEY_FILE)
+    typer.echo(f"{member} revoked; frame key {old} dropped, key {kid} ({_fingerprint(ring.keys[kid])}) current: copy "
+               f"{KEY_FILE} to every other member and restart it")
 
 
 @keys_app.command("rotate")
-def keys_rotate(path: Path = KeyPath):
-    """Replace the swarm's key with a new one (after a member or a copy of the file is lost): frames
-    sealed with the old key are refused from then on, so every member needs the new file."""
-    ring = _keyring(path)
-    old = ring.current
-    kid = ring.rotate()
-    ring.save(path)
-    typer.echo(f"{path}: key {old} dropped, key {kid} ({_fingerprint(ring.keys[kid])}) current; copy the file to every "
-               "member and restart it")
+def keys_rotate(directory: Path = KeyDir):
+    """Replace the frame key with a new one (a copy of swarm.key was lost): frames sealed with the old
+    key are refused from then on, so every member needs the new file."""
+    ring = _keyring(directory)
+    old, kid = ring.current, ring.rotate()
+    ring.save(directory / KEY_FILE)
+    typer.echo(f"{directory / KEY_FILE}: key {old} dropped, key {kid} ({_fingerprint(ring.keys[kid])}) current; copy "
+               "it to every member and restart it")
+
+
+@keys_app.command("show")
+def keys_show(directory: Path = KeyDir):
+    """A key directory's swarm, key fingerprints, members and revocations (never a key)."""
+    from cryptography import x509
+    from cryptography.hazmat.primitives.serialization import Encoding
+
+    ring = _keyring(directory)
+    typer.echo(f"{directory}: swarm {ring.swarm}")
+    for kid, key in sorted(ring.keys.items()):
+        typer.echo(f"  frame key {kid}  sha256 {_fingerprint(key)}" + ("  (current)" if kid == ring.current else ""))
+    for pem in sorted(directory.glob("*.pem")):
+        cert = x509.load_pem_x509_certificate(pem.read_bytes())
+        cn = cert.subject.get_attributes_for_oid(x509.NameOID.COMMON_NAME)[0].value
+        typer.echo(f"  {pem.name:<16} {cn:<28} until {cert.not_valid_after_utc:%Y-%m-%d}  "
+                   f"sha256 {_fingerprint(cert.public_bytes(Encoding.DER))}")
+    revoked = _revoked(directory)
+    typer.echo(f"  revoked: {', '.join(sorted(revoked)) or 'none'}")
 
 
 # A command of its own, not `agent install-service`: `agent` takes options, not subcommands.

@@ -224,9 +224,12 @@ class Outputs(_Strict):
 
 
 class Security(_Strict):
-    keys: Path | None = Field(None, description="the swarm's key file (`swarmloc keys new`; mode 0600): every frame "
-                              "sealed and opened with it (docs/security.md); relative to this file's directory. "
+    keys: Path | None = Field(None, description="the swarm's key directory (`swarmloc keys new`, or a copy holding "
+                              "swarm.key, ca.pem and this agent's agent-<id>.pem and .key): every frame sealed and "
+                              "opened with its swarm.key (docs/security.md); relative to this file's directory. "
                               "null: frames are not authenticated, which the agent warns about at start")
+    tls: bool = Field(False, description="Zenoh over TLS with mutual authentication: the endpoints become tls/, "
+                      "the agent shows its certificate agent-<id>.pem and trusts the swarm's ca.pem (needs keys)")
 
     @field_validator("keys")
     @classmethod
@@ -357,13 +360,18 @@ class AgentFileConfig(_Strict):
     @field_validator("security")
     @classmethod
     def _keys_of_this_swarm(cls, v, info: ValidationInfo):
-        swarm = info.data.get("swarm")
+        swarm, aid = info.data.get("swarm"), info.data.get("id")
+        if v.tls and v.keys is None:
+            raise _FieldError(("tls",), "needs keys: the directory with ca.pem and this agent's certificate")
         if v.keys is not None and swarm is not None:
             from swarmloc.auth import Keyring
 
             ring = Keyring.load(v.keys)
             if ring.swarm != swarm:
                 raise _FieldError(("keys",), f"{v.keys} holds the keys of swarm {ring.swarm!r}, not {swarm!r}")
+            missing = [f for f in ("ca.pem", f"agent-{aid}.pem", f"agent-{aid}.key") if not (v.keys / f).is_file()]
+            if v.tls and aid is not None and missing:
+                raise _FieldError(("tls",), f"{v.keys} has no {', '.join(missing)} (swarmloc keys add {v.keys} {aid})")
         return v
 
     @property
@@ -468,7 +476,8 @@ def daemon_config(cfg: AgentFileConfig) -> AgentConfig:
                                               if s.kind == "zenoh" and s.role == "measurements"),
                        sources=tuple(s for s in cfg.sensors if s.kind != "zenoh"),
                        publish_swarm=cfg.outputs.swarm, mavlink_output=cfg.outputs.mavlink,
-                       estimate_log=cfg.outputs.log, epoch=cfg.clock.epoch, keyring=cfg.keyring)
+                       estimate_log=cfg.outputs.log, epoch=cfg.clock.epoch, keyring=cfg.keyring,
+                       tls_dir=cfg.security.keys if cfg.security.tls else None)
 
 
 def summary(cfg: AgentFileConfig, spec: NodeSpec) -> list[str]:
@@ -505,8 +514,8 @@ def summary(cfg: AgentFileConfig, spec: NodeSpec) -> list[str]:
         ("clock", "own: ticks from the first sample" if cfg.clock.epoch is None else
          f"swarm: tick 0 at UNIX {cfg.clock.epoch:.3f} ({_utc(cfg.clock.epoch)})"),
         ("checkpoint", str(cfg.state_file) if cfg.state_file else "none"),
-        ("security", f"frames authenticated with {cfg.security.keys}" if cfg.security.keys else
-         "none: frames are not authenticated"),
+        ("security", (f"frames authenticated with {cfg.security.keys}" + ("; Zenoh over mutual TLS" if
+                      cfg.security.tls else "")) if cfg.security.keys else "none: frames are not authenticated"),
         ("node", spec.factory),
     ]
     return [f"{k:<11}{v}" for k, v in rows]

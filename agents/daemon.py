@@ -72,6 +72,7 @@ class AgentConfig:
     estimate_log: Path | None = None  # every estimate appended as a JSON line (docs/deploy.md#the-estimate-log)
     epoch: float | None = None  # the swarm clock: UNIX time of tick 0, which polled sources number ticks from
     keyring: object | None = None  # swarmloc.auth.Keyring: frames sealed and opened with it (docs/security.md)
+    tls_dir: Path | None = None  # key directory: Zenoh over mutual TLS with its ca.pem and agent-<id>.pem/.key
 
 
 class AgentDaemon:
@@ -116,8 +117,12 @@ class AgentDaemon:
     # ---------------------------------------------------------------- zenoh plumbing
 
     def open(self) -> None:
-        conf = zenoh.Config.from_json5(wire.zenoh_config(self.cfg.mode, self.cfg.listen, self.cfg.connect,
-                                                         self.cfg.gossip))
+        conf = wire.zenoh_config(self.cfg.mode, self.cfg.listen, self.cfg.connect, self.cfg.gossip)
+        if self.cfg.tls_dir is not None:
+            from agents import tls
+
+            conf = json.dumps(tls.zenoh_tls(conf, self.cfg.tls_dir, f"agent-{self.node.id}"))
+        conf = zenoh.Config.from_json5(conf)
         self.session = zenoh.open(conf)
         aid = self.node.id
         block = wire.publisher_options(zenoh)

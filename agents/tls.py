@@ -261,9 +261,14 @@ def acl_rules(swarm: str, agent_ids, direct: bool = False) -> dict:
     # forward to it. Its own keys only, except radio/rx/* in direct mode.
     for a in ids:
         r = f"agent-{a}"
+        puts = [k.radio_tx(a), k.estimate(a), k.done(a)] + ([f"{p}/radio/rx/*"] if direct else [])
         rules += [
-            _rule(f"{r}-put", ["put"], "ingress",
-                  [k.radio_tx(a), k.estimate(a), k.done(a)] + ([f"{p}/radio/rx/*"] if direct else [])),
+            _rule(f"{r}-put", ["put"], "ingress", puts),
+            # Others' subscriptions forwarded to it: without them a Zenoh publisher's write
+            # filter drops its puts before they leave the session. A rule must include the
+            # subscription's key expression (an operator's agent/*/estimate), hence the whole
+            # swarm's; a declaration lets it put nothing its put rule does not.
+            _rule(f"{r}-put-interest", ["declare_subscriber"], "egress", [f"{p}/**"]),
             _rule(f"{r}-sub", ["declare_subscriber"], "ingress",
                   [k.clock, k.sensors(a), k.radio_rx(a), k.radio_rx("all")]),
             _rule(f"{r}-recv", ["put"], "egress", [k.clock, k.sensors(a), k.radio_rx(a), k.radio_rx("all")]),

@@ -47,6 +47,7 @@ MAX_SENDERS = 4096
 """Senders a receiver keeps windows for; the least recently heard is forgotten first (its old
 frames then count as too old, not as new)."""
 OPERATOR = 2**31 - 1  # the sender id of the CLI (wire.MAX_ID): control requests
+KEY_FILE = "swarm.key"  # the frame key's file in a swarm's key directory (`swarmloc keys new`)
 KEYRING_VERSION = 1
 
 
@@ -108,9 +109,12 @@ class Keyring:
 
     @classmethod
     def load(cls, path: Path) -> Keyring:
-        """The key file at `path`; ValueError if it is unreadable, malformed, or readable by
-        anyone but its owner (as ssh refuses such a private key)."""
+        """The key file at `path` (or KEY_FILE in the key directory `path`); ValueError if it is
+        unreadable, malformed, or readable by anyone but its owner (as ssh refuses such a
+        private key)."""
         path = Path(path)
+        if path.is_dir():
+            path = path / KEY_FILE
         try:
             mode = path.stat().st_mode
             text = path.read_text()

@@ -208,3 +208,22 @@ def test_the_daemon_starts_from_a_config(tmp_path):
     assert "agent-3 INFO agent 3 up (peer mode" in line and listen in line and "direct radio" in line, line
     assert f"swarmloc/c{os.getpid()}/agent/3/sensors" in line
     assert (tmp_path / "state").is_dir()
+
+
+def test_security_names_a_key_directory_of_this_swarm(tmp_path):
+    from swarmloc.auth import Keyring
+
+    keys = tmp_path / "keys"
+    keys.mkdir()
+    Keyring.generate("field").save(keys / "swarm.key")
+    base = dict(swarm="field", security={"keys": "keys"})
+    cfg = parse_config(changed(**base), tmp_path)
+    assert daemon_config(cfg).keyring.swarm == "field" and daemon_config(cfg).tls_dir is None
+    assert any(line.startswith("security.keys: ") and "swarm 'field', not 'other'" in line
+               for line in problems(changed(swarm="other", security={"keys": "keys"}), tmp_path))
+    assert any(line.startswith("security.tls: ") and "agent-3.pem, agent-3.key" in line
+               for line in problems(changed(**{**base, "security": {"keys": "keys", "tls": True}}), tmp_path))
+    assert any(line.startswith("security.tls: needs keys")
+               for line in problems(changed(security={"tls": True}), tmp_path))
+    (keys / "swarm.key").chmod(0o640)
+    assert any(line.startswith("security.keys: ") and "chmod 600" in line for line in problems(changed(**base), tmp_path))

@@ -187,3 +187,86 @@ def test_netsim_routes_only_frames_sealed_by_the_agent_whose_key_they_are_on():
     assert server._from_agent("tx", key, sealed) is None
     assert dict(server.rejected["tx"]) == {"auth-unauthenticated": 1, "auth-bad-tag": 1, "src-mismatch": 1,
                                            "auth-replayed": 1}
+
+
+# ---------------------------------------------------------------------------- processes
+
+
+@pytest.mark.slow
+def test_secured_agents_through_a_tls_router(tmp_path):
+    """`swarmloc keys` makes the swarm's keys; two UKF-DCL agents from configuration files
+    (security.keys, security.tls) are clients of `swarmloc router --keys --agents 1,2 --direct`
+    and replay a recording on the swarm clock: they cooperate (chains commit) with every frame
+    sealed and nothing refused; a session without a certificate cannot connect; the operator's
+    certificate reads their sealed estimates and stats."""
+    import json
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import yaml
+    import zenoh
+
+    from agents import tls
+    from conftest import free_port
+    from netsim.sim import Simulation
+    from swarmloc.messages import EstimateMsg, Reply
+    from swarmloc.runner import InProcessRunner, make_nodes
+    from swarmloc.scenario import load
+
+    def swarmloc(*args):
+        p = subprocess.run([sys.executable, "-m", "agents", *args], capture_output=True, text=True, timeout=60)
+        assert p.returncode == 0, p.stderr
+        return p.stdout
+
+    keys = tmp_path / "keys"
+    swarmloc("keys", "new", str(keys), "--swarm", "sec")
+    for member in ("1", "2", "router", "operator"):
+        swarmloc("keys", "add", str(keys), member, "--host", "127.0.0.1")
+    sc = load("wang2019").with_overrides(**{"clock.duration": 10.0, "sensors.range.probability": 1.0})
+    record = InProcessRunner(Simulation(sc), make_nodes("ukf-dcl", sc)).run()
+    np.savez(tmp_path / "sensors.npz", **record.sensor_arrays())
+    port = free_port()
+    router = subprocess.Popen([sys.executable, "-m", "agents", "router", "--listen", f"tcp/127.0.0.1:{port}", "--keys",
+                               str(keys), "--agents", "1,2", "--direct"], stderr=subprocess.PIPE, text=True)
+    procs = {}
+    try:
+        assert "mutual TLS" in router.stderr.readline()
+        epoch = time.time() + 6.0
+        for a in (1, 2):
+            cfg = {"version": 1, "id": a, "swarm": "sec", "estimator": {"name": "ukf-dcl"},
+                   "model": "planar-speed-heading", "prior": {"position": sc.prior(a)[0].tolist(), "std": 0.1},
+                   "zenoh": {"mode": "client", "connect": [f"tcp/127.0.0.1:{port}"]},
+                   "sensors": [{"kind": "file", "path": "sensors.npz", "speed": 4.0}],
+                   "clock": {"epoch": epoch}, "security": {"keys": "keys", "tls": True}}
+            (tmp_path / f"a{a}.yaml").write_text(yaml.safe_dump(cfg))
+            procs[a] = subprocess.Popen([sys.executable, "-m", "agents", "agent", "--config", str(tmp_path / f"a{a}.yaml")],
+                                        stderr=subprocess.PIPE, text=True)
+        with pytest.raises(zenoh.ZError):  # no certificate: not even a session
+            zenoh.open(zenoh.Config.from_json5(wire.zenoh_config("client", connect=[f"tls/127.0.0.1:{port}"])))
+        ring = Keyring.load(keys)
+        opener = Opener(ring)
+        operator = zenoh.open(zenoh.Config.from_json5(json.dumps(tls.zenoh_tls(
+            wire.zenoh_config("client", connect=[f"tcp/127.0.0.1:{port}"]), keys, "operator"))))
+        got = []
+        operator.declare_subscriber("swarmloc/sec/agent/*/estimate",
+                                    lambda s: got.append(wire.decode(opener.open(s.payload.to_bytes())[0]).body))
+        time.sleep(max(0.0, epoch + 10.0 / 4 + 1.5 - time.time()))
+        stats = {}
+        for r in operator.get("swarmloc/sec/agent/*/stats", timeout=3.0):
+            if r.ok is not None:
+                env = wire.decode(opener.open(r.ok.payload.to_bytes())[0], expect=(Reply,))
+                stats[env.src] = env.body.data
+        operator.close()
+    finally:
+        for p in [*procs.values(), router]:
+            p.send_signal(signal.SIGTERM)
+        logs = {a: p.communicate(timeout=10)[1] for a, p in procs.items()}
+        router.communicate(timeout=10)
+    assert set(stats) == {1, 2}, (stats, logs)
+    for a, s in stats.items():
+        assert s["ticks"] == sc.clock.steps + 1 and s["chains_committed"] > 0, (s, logs)
+        assert not any(r.startswith("auth") for r in s["rejected"]), s["rejected"]
+        assert s["peers"] == [3 - a]
+    assert {e.k for e in got if isinstance(e, EstimateMsg)} >= set(range(1, sc.clock.steps + 1))
