@@ -123,6 +123,10 @@ class Registration:
 # ------------------------------------------------------------------------------------ control
 
 
+KEYS_ENV = "SWARMLOC_KEYS"
+"""The swarm's key directory for the control commands when no `swarmloc run` on this machine
+registered one (a swarm reached with --connect)."""
+
 AGENTS_TIMEOUT = 1.0
 """s an agents round waits for answers. It ends sooner when every agent Zenoh knows of has
 answered; an agent's loop answers between two inputs, within a tick when it is healthy."""
@@ -142,11 +146,22 @@ class ControlClient:
 
     def __init__(self, swarm: str, connect: list[str] | None = None):
         self.swarm = swarm
-        if connect:
-            self.endpoints = list(connect)
-        else:
-            found = lookup(swarm)
-            self.endpoints = [found["endpoint"] if found else DEFAULT_ENDPOINT]
+        found = lookup(swarm)
+        self.endpoints = list(connect) if connect else [found["endpoint"] if found else DEFAULT_ENDPOINT]
+        self.sealer = self.opener = None
+        keys = os.environ.get(KEYS_ENV) or (found or {}).get("keys")
+        if keys:
+            from swarmloc import auth
+
+            try:
+                ring = auth.Keyring.load(Path(keys))
+            except ValueError as exc:
+                raise Failure(str(exc), 2) from None
+            self.sealer, self.opener = auth.Sealer(ring, auth.operator()), auth.Opener(ring)
+
+    def _open(self, data: bytes) -> bytes:
+        """A reply's frame, authenticated when we hold the swarm's key (else read as it is)."""
+        return data if self.opener is None else self.opener.open(data)[0]
 
     def __enter__(self) -> "ControlClient":
         import zenoh
@@ -163,13 +178,17 @@ class ControlClient:
     def request(self, op: str, args: dict | None = None, timeout: float = 3.0) -> dict:
         from swarmloc.messages import Control, Reply
 
+        from swarmloc import auth
+
         payload = wire.encode(Control(op, args or {}), 0, 0)
+        if self.sealer is not None:
+            payload = self.sealer.seal(payload)
         for r in self.session.get(wire.Keys(self.swarm).control, payload=payload, timeout=timeout):
             if r.ok is None:
                 continue
             try:
-                body = wire.decode(r.ok.payload.to_bytes(), expect=(Reply,)).body
-            except wire.WireError as exc:
+                body = wire.decode(self._open(r.ok.payload.to_bytes()), expect=(Reply,)).body
+            except (wire.WireError, auth.AuthError) as exc:
                 raise Failure(f"unreadable reply from netsim: {exc}") from None
             if not body.ok:
                 raise Failure(f"netsim refused {op}: {body.error}", 2)
@@ -191,8 +210,8 @@ class ControlClient:
             if r.ok is None:
                 continue
             try:
-                env = wire.decode(r.ok.payload.to_bytes(), expect=(Reply,))
-            except wire.WireError as exc:
+                env = wire.decode(self._open(r.ok.payload.to_bytes()), expect=(Reply,))
+            except (wire.WireError, ValueError) as exc:  # auth.AuthError is a ValueError
                 out.unreadable[str(r.ok.key_expr)] = str(exc)
                 continue
             out.stats[env.src] = env.body.data

@@ -37,7 +37,7 @@ import numpy as np
 import zenoh
 
 from agents import sources as sensor_sources
-from swarmloc import auth, exit_on_sigterm, wire
+from swarmloc import auth, exit_on_sigterm, limits, wire
 from swarmloc.messages import Clock, Done, EstimateMsg, LinkNack, Reply, Sensors, TargetEstimateMsg
 from swarmloc.node import Node, NodeSpec, Outbox, Timers, estimate_of
 
@@ -80,7 +80,9 @@ class AgentDaemon:
         self.node, self.cfg = node, cfg
         node.synchronous = False  # until netsim's clock says lockstep: direct mode never does
         self.keys = wire.Keys(cfg.swarm)
-        self.inbox: queue.SimpleQueue = queue.SimpleQueue()
+        # Bounded: a flood is dropped and counted at the door, never buffered (docs/security.md#limits).
+        self.inbox = limits.Inbox()
+        self.rate = limits.RateLimit()
         self.outbox = Outbox(node.id)
         self.sent = 0  # radio frames published
         self.consumed = 0  # netsim's delivery number of the last radio frame accepted
@@ -130,7 +132,8 @@ class AgentDaemon:
         # stall the loop (Zenoh blocks up to seconds before it gives the link up): direct radio
         # frames are dropped on congestion instead, and UKF-DCL's timeouts cover the loss.
         radio = wire.publisher_options(zenoh, lossy=self.cfg.direct)
-        put = self.inbox.put
+        def put(item):
+            self.inbox.put(item, len(item[1]) if isinstance(item[1], bytes) else 0)
 
         def frame(kind):
             return lambda s: put((kind, wire.bounded(s.payload), s.attachment))
@@ -182,7 +185,7 @@ class AgentDaemon:
 
     def stop(self) -> None:
         self._stop.set()
-        self.inbox.put(("stop", b"", None))
+        self.inbox.put(("stop", b"", None), force=True)
 
     def stats(self) -> dict:
         lat = sorted(self.hop_latency)
@@ -200,7 +203,8 @@ class AgentDaemon:
                 "since_frame_s": None if self.frame_wall is None else time.monotonic() - self.frame_wall,
                 "node_drops": dict(self.node.drops), **getattr(self.node, "stats", {}),
                 **({"sources": {s.name: s.stats() for s in self.sources}} if self.sources else {}),
-                **({"merged": dict(self.merged)} if self.cfg.measurement_keys else {})}
+                **({"merged": dict(self.merged)} if self.cfg.measurement_keys else {}),
+                "inbox": self.inbox.stats()}
 
     def _reply_stats(self, query) -> None:
         # Reply on our own key, not the query's: a wildcard query must not consolidate agents away.
@@ -276,10 +280,14 @@ class AgentDaemon:
                 data, sender = self.opener.open(data)
             except auth.AuthError as exc:
                 return self._reject(f"auth-{exc.reason}", f"{kind}: {exc}")
+            if not self.rate.allow(sender, time.monotonic()):  # before the costly decode
+                return self._reject("rate-limited", f"{kind} from {sender}")
         try:
             env = wire.decode(data, expect=expect)
         except wire.WireError as exc:
             return self._reject("malformed", f"{kind}: {exc}")
+        if sender is None and not self.rate.allow(env.src, time.monotonic()):
+            return self._reject("rate-limited", f"{kind} from {env.src}")
         if sender is not None and env.src != sender:
             return self._reject("auth-src-mismatch", f"{kind}: sealed by {sender}, says src {env.src}")
         if kind in ("sensors", "clock") and not self.cfg.direct and env.src != NETSIM_ID:

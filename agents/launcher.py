@@ -256,10 +256,11 @@ def run_swarm(sc: Scenario, out: Path | None, swarm: str, port: int | None, plot
     registration = Registration(swarm, endpoint=endpoint, scenario=sc.name)
     try:
         out = make_out(out, sc.name)
-        registration.update(out=str(out.resolve()))
+        keys = _run_keys(sc, swarm, out)
+        registration.update(out=str(out.resolve()), keys=str(keys.resolve()))
         procs = Swarm(out / "logs")
         try:
-            _start(procs, sc, out, swarm, endpoint, plots, restart_crashed)
+            _start(procs, sc, out, swarm, endpoint, plots, restart_crashed, keys)
             _watch(procs, sc, swarm, endpoint, restart_crashed)
         except Interrupted as exc:
             raise Failure(f"interrupted ({signal.Signals(exc.signum).name}): stopped every process of the swarm; "
@@ -275,7 +276,29 @@ def run_swarm(sc: Scenario, out: Path | None, swarm: str, port: int | None, plot
     return out
 
 
-def _start(procs: Swarm, sc: Scenario, out: Path, swarm: str, endpoint: str, plots: bool, restart_crashed: bool) -> None:
+def _run_keys(sc: Scenario, swarm: str, out: Path) -> Path:
+    """The key directory that seals the run's frames: the scenario's (its swarm must be this
+    run's), or throwaway keys made for the run in logs/keys (docs/security.md)."""
+    from swarmloc.auth import KEY_FILE, Keyring
+
+    if sc.security.keys is not None:
+        path = Path(sc.security.keys).expanduser()
+        try:
+            ring = Keyring.load(path)
+        except ValueError as exc:
+            raise Failure(f"security.keys: {exc}", 2) from None
+        if ring.swarm != swarm:
+            raise Failure(f"security.keys: {path} holds the keys of swarm {ring.swarm!r}; run it with --swarm {ring.swarm}",
+                          2)
+        return path
+    keys = out / "logs" / "keys"
+    keys.mkdir(mode=0o700, parents=True, exist_ok=True)
+    Keyring.generate(swarm).save(keys / KEY_FILE)
+    return keys
+
+
+def _start(procs: Swarm, sc: Scenario, out: Path, swarm: str, endpoint: str, plots: bool, restart_crashed: bool,
+           keys: Path) -> None:
     scenario_file = out / "logs" / "scenario.input.yaml"
     scenario_file.write_text(sc.to_yaml())
     stop = "" if sc.world.stop_distance is None else \
@@ -283,6 +306,7 @@ def _start(procs: Swarm, sc: Scenario, out: Path, swarm: str, endpoint: str, plo
     console.print(f"[bold]swarmloc run[/] {sc.name}: {len(sc.world.agents)} agents, {sc.clock.steps + 1} ticks (0..{sc.clock.steps}){stop} "
                   f"of {sc.clock.dt:g} s, {sc.clock.mode}, seed {sc.seed}, Zenoh router {endpoint}, swarm '{swarm}'")
     net = procs.start_netsim(["-m", "netsim", str(scenario_file), "--swarm", swarm, "--listen", endpoint, "--out", str(out),
+                              "--keys", str(keys),
                               *([] if plots else ["--no-plots"]), *(["--await-rejoin"] if restart_crashed else [])])
     _wait_listening(int(endpoint.rsplit(":", 1)[1]), net)
     if net.poll() is not None:
@@ -296,7 +320,8 @@ def _start(procs: Swarm, sc: Scenario, out: Path, swarm: str, endpoint: str, plo
         spec = out / "logs" / f"agent-{a}.node.json"
         spec.write_text(info.node_spec(sc, a, settings).dumps())
         procs.agent_args[a] = ["-m", "agents.daemon", "--id", str(a), "--spec", str(spec), "--swarm", swarm,
-                               "--connect", endpoint, "--state-file", str(out / "logs" / f"agent-{a}.state.npy")]
+                               "--connect", endpoint, "--state-file", str(out / "logs" / f"agent-{a}.state.npy"),
+                               "--keys", str(keys)]
         procs.start_agent(a)
 
 

@@ -27,7 +27,7 @@ import numpy as np
 import zenoh
 
 from netsim.sim import Simulation
-from swarmloc import auth, wire
+from swarmloc import auth, limits, wire
 from swarmloc.faults import FaultError, inverse_of, nodes_named, parse_fault
 from swarmloc.messages import Clock, Control, Done, EstimateMsg, Event, LinkMsg, LinkNack, Links, Reply, Truth
 from swarmloc.node import Estimate, RadioRx, RadioTx
@@ -64,7 +64,9 @@ class NetsimServer:
         self.ids = self.sim.ids
         self.mode = scenario.clock.mode
         self.keys = wire.Keys(cfg.swarm)
-        self.q: queue.SimpleQueue = queue.SimpleQueue()
+        # Bounded: a flood is dropped and counted at the door, never buffered (docs/security.md#limits).
+        self.q = limits.Inbox()
+        self.rate = limits.RateLimit()
         self.alive: set[int] = set()
         self.unresponsive: set[int] = set()
         self.joined_at = {a: 0 for a in self.ids}  # first tick an agent must acknowledge
@@ -104,7 +106,10 @@ class NetsimServer:
             self.session = zenoh.open(conf)
         except zenoh.ZError as exc:
             raise SetupError(f"cannot open Zenoh router on {', '.join(self.cfg.listen)}: {exc}") from None
-        put, k = self.q.put, self.keys
+        k = self.keys
+
+        def put(item):
+            self.q.put(item, len(item[2]) if isinstance(item[2], bytes) else 0)
 
         def frame(kind, stamp=None):
             return lambda s: put((kind, str(s.key_expr), wire.bounded(s.payload), stamp and (time.perf_counter(), s.attachment)))
@@ -130,13 +135,14 @@ class NetsimServer:
     def _seal(self, data: bytes) -> bytes:
         return data if self.sealer is None else self.sealer.seal(data)
 
-    def _open(self, kind: str, key: str, payload: bytes) -> tuple[bytes, int | None] | None:
-        """(frame, sealer) of an authentic payload, or (payload, None) without a keyring; None
-        if it is not authentic, refused and counted as `auth-<reason>`."""
+    def _open(self, kind: str, key: str, payload: bytes, sender: int | None = None) -> tuple[bytes, int | None] | None:
+        """(frame, sealer) of an authentic payload (sealed by `sender` if given), or (payload,
+        None) without a keyring; None if it is not authentic, refused and counted as
+        `auth-<reason>`."""
         if self.opener is None:
             return payload, None
         try:
-            return self.opener.open(payload)
+            return self.opener.open(payload, sender)
         except auth.AuthError as exc:
             return self._refuse(kind, key, f"auth-{exc.reason}", str(exc))
 
@@ -163,9 +169,11 @@ class NetsimServer:
             return self._refuse(kind, key, "unknown-agent")
         if payload is None:
             return self._refuse(kind, key, "oversize")
-        opened = self._open(kind, key, payload)
+        opened = self._open(kind, key, payload, aid)
         if opened is None:
             return None
+        if not self.rate.allow(aid, time.monotonic()):  # an agent flooding its own keys
+            return self._refuse(kind, key, "rate-limited")
         frame, sealer = opened
         try:
             env = wire.decode(frame, expect=None if cls is None else (cls,), body=cls is not None)
@@ -358,7 +366,7 @@ class NetsimServer:
             item = None  # a held Zenoh query is only answered (final) once released
             while True:  # drain what is already queued before testing the condition again
                 try:
-                    self._handle(self.q.get_nowait())
+                    self._handle(self.q.get(0))
                 except queue.Empty:
                     break
         return True
@@ -524,6 +532,7 @@ class NetsimServer:
             "tick_timeouts": self.tick_timeouts,
             "agent_events": self.agent_events,
             "rejected": {kind: dict(c) for kind, c in self.rejected.items()},
+            "inbox": self.q.stats(),
         }
         algorithms = REGISTRY.order({self.sc.estimator.name, *self.sc.reference_names, *self.record.est})
         if self.cfg.out is None:

@@ -7,7 +7,7 @@ the control client) call them at their I/O boundary; estimators never see them.
 
 Layout: the frame, then a trailer of TRAILER.size = 31 bytes, little-endian:
 
-    sender   u32   who sealed it (an agent's id, 0 for netsim, OPERATOR for the CLI)
+    sender   u32   who sealed it (an agent's id, 0 for netsim, operator() for the CLI)
     counter  u64   the sender's counter, strictly increasing over its frames
     kid      u8    which of the keyring's keys
     tag      16 B  HMAC-SHA256(key, DOMAIN + swarm + 0x00 + frame + sender + counter + kid)[:16]
@@ -46,7 +46,9 @@ keys (netsim's clock, sensors and radio) may arrive in another order than they w
 MAX_SENDERS = 4096
 """Senders a receiver keeps windows for; the least recently heard is forgotten first (its old
 frames then count as too old, not as new)."""
-OPERATOR = 2**31 - 1  # the sender id of the CLI (wire.MAX_ID): control requests
+OPERATOR = 2**31
+"""Sender ids from here up are operators' (the CLI, monitors): one per process, operator() = this
++ its pid, so that two of them at once never share a counter (agents' ids are below 2**31)."""
 KEY_FILE = "swarm.key"  # the frame key's file in a swarm's key directory (`swarmloc keys new`)
 KEYRING_VERSION = 1
 
@@ -126,6 +128,11 @@ class Keyring:
         return cls.from_json(text, str(path))
 
 
+def operator() -> int:
+    """This process's sender id as an operator (control requests)."""
+    return OPERATOR + os.getpid() % OPERATOR
+
+
 def _tag(key: bytes, swarm: bytes, frame: bytes, header: bytes) -> bytes:
     return hmac.new(key, DOMAIN + swarm + b"\0" + frame + header, hashlib.sha256).digest()[:TAG_BYTES]
 
@@ -176,17 +183,22 @@ class Opener:
     def __post_init__(self):
         self._swarm = self.keyring.swarm.encode()
 
-    def open(self, data: bytes) -> tuple[bytes, int]:
-        """(frame, sender) of an authentic frame not seen before; AuthError otherwise."""
+    def open(self, data: bytes, sender: int | None = None) -> tuple[bytes, int]:
+        """(frame, sender) of an authentic frame not seen before; AuthError otherwise. With
+        `sender`, a frame sealed by anyone else is refused before its counter counts as seen:
+        a captured copy on another sender's key must not make the original a replay."""
         if len(data) < TRAILER.size or data[-2:] != MAGIC:
             raise AuthError("unauthenticated", "no trailer")
         frame, trailer = data[:-TRAILER.size], data[-TRAILER.size:]
-        sender, counter, kid, tag, _ = TRAILER.unpack(trailer)
+        sealer, counter, kid, tag, _ = TRAILER.unpack(trailer)
         key = self.keyring.keys.get(kid)
         if key is None:
             raise AuthError("unknown-key", f"key {kid}")
         if not hmac.compare_digest(tag, _tag(key, self._swarm, frame, trailer[:13])):
-            raise AuthError("bad-tag", f"sender {sender}")
+            raise AuthError("bad-tag", f"sender {sealer}")
+        if sender is not None and sealer != sender:
+            raise AuthError("wrong-sender", f"sealed by {sealer}, expected {sender}")
+        sender = sealer
         window = self.windows.get(sender)
         if window is None:
             if len(self.windows) >= MAX_SENDERS:

@@ -306,6 +306,11 @@ class Sensors(_Strict):
 RADIO_MODELS = ("unit-disk", "log-distance")
 
 
+class Security(_Strict):
+    keys: str | None = Field(None, description="the swarm's key directory (`swarmloc keys new`) whose swarm.key "
+                             "seals every frame of the run; null: the run makes throwaway keys of its own")
+
+
 class Estimation(_Strict):
     initial_std: float = Field(0.1, gt=0, description="std of the known initial position (m)")
     initial_heading_std: float = Field(1e-3, gt=0, description="planar-pose: std of the known initial heading (rad)")
@@ -357,6 +362,7 @@ class Scenario(_Strict):
     references: list[str] | None = Field(None, description="estimators computed offline from the recorded sensor stream "
                                          "after the run; null: every reference that fits the swarm's models")
     faults: list[Fault] = Field(default_factory=list, description="fault timeline: each fault with `at` (docs/faults.md)")
+    security: Security = Field(default_factory=Security, description="frame authentication (docs/security.md)")
 
     @model_validator(mode="before")
     @classmethod

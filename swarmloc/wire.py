@@ -32,6 +32,7 @@ MAX_WIRE_BYTES = 64 * 1024
 MAX_ARRAY_ELEMENTS = 4096  # an array's default limit on each dimension and on its element count
 MAX_COLLECTION = 1024
 MAX_ID = 2**31 - 1  # agent ids fit a signed 32-bit integer
+SEAL_TRAILER, SEAL_MAGIC = 31, b"S1"  # swarmloc.auth's trailer: its size and last two bytes
 MAX_MAGNITUDE = 1e12
 """Largest absolute value of any float on the wire (scalar or array element), unless its field
 says less: far beyond any position (m), time (s) or variance the estimators meet, and far
@@ -338,9 +339,17 @@ def decode(data: bytes, expect: tuple[type, ...] | None = None, body: bool = Tru
         raise WireError("payload is not bytes")
     if len(data) > MAX_WIRE_BYTES:
         raise FrameTooLarge(f"frame of {len(data)} bytes exceeds {MAX_WIRE_BYTES}")
+    data = data if type(data) is bytes else bytes(data)
+    size = len(data)  # the frame's, without a seal's trailer
     try:
-        env = msgpack.unpackb(data if type(data) is bytes else bytes(data), raw=False, strict_map_key=False,
-                              max_bin_len=MAX_WIRE_BYTES)
+        env = msgpack.unpackb(data, raw=False, strict_map_key=False, max_bin_len=MAX_WIRE_BYTES)
+    except msgpack.ExtraData as exc:
+        # A sealed frame (swarmloc/auth.py) read by someone without the key, or not checking
+        # it (a monitor): the envelope before its trailer. Receivers that must believe a
+        # frame open it first, which checks the trailer.
+        if len(exc.extra) != SEAL_TRAILER or exc.extra[-2:] != SEAL_MAGIC:
+            raise WireError("not MessagePack: ExtraData") from None
+        env, size = exc.unpacked, len(data) - SEAL_TRAILER
     except Exception as exc:  # msgpack raises several unrelated exception types
         raise WireError(f"not MessagePack: {exc.__class__.__name__}") from None
     if not isinstance(env, dict) or not Envelope.KEYS.issuperset(env) or "body" not in env:
@@ -350,8 +359,8 @@ def decode(data: bytes, expect: tuple[type, ...] | None = None, body: bool = Tru
     cls = REGISTRY.get(env.get("type")) if isinstance(env.get("type"), str) else None
     if cls is None:
         raise WireError(f"unknown message type {env.get('type')!r}")
-    if len(data) > cls.MAX_BYTES:
-        raise FrameTooLarge(f"frame of {len(data)} bytes exceeds {cls.MAX_BYTES} ({cls.TYPE})")
+    if size > cls.MAX_BYTES:
+        raise FrameTooLarge(f"frame of {size} bytes exceeds {cls.MAX_BYTES} ({cls.TYPE})")
     if expect is not None and cls not in expect:
         raise WireError(f"message type {cls.TYPE!r} not expected here")
     src = _SRC.decode(env.get("src"), "src")

@@ -185,7 +185,7 @@ def test_netsim_routes_only_frames_sealed_by_the_agent_whose_key_they_are_on():
     aid, env = server._from_agent("tx", key, sealed)
     assert (aid, env.src, env.type) == (2, 2, "dcl.log")
     assert server._from_agent("tx", key, sealed) is None
-    assert dict(server.rejected["tx"]) == {"auth-unauthenticated": 1, "auth-bad-tag": 1, "src-mismatch": 1,
+    assert dict(server.rejected["tx"]) == {"auth-unauthenticated": 1, "auth-bad-tag": 1, "auth-wrong-sender": 1,
                                            "auth-replayed": 1}
 
 

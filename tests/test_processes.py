@@ -62,15 +62,24 @@ def test_inject_cut_and_restore_live(cli, tmp_path):
     # Malformed control requests get an error reply and never take netsim down.
     from swarmloc.messages import Control
 
+    from conftest import NetsimClient
+
+    ns = NetsimClient(cli.endpoint, cli.swarm)  # its sealer: the run's key (docs/security.md)
     session = zenoh.open(zenoh.Config.from_json5(wire.zenoh_config("client", connect=[cli.endpoint])))
     try:
         for req in (Control("cut", [1, 2]), Control("cut", {"link": [1, 99]}), Control("explode", {}), b"\x00junk"):
-            payload = req if isinstance(req, bytes) else wire.encode(req, 0, 1)
+            payload = ns.sealer.seal(req if isinstance(req, bytes) else wire.encode(req, 0, 1))
             (r,) = [r for r in session.get(wire.Keys(cli.swarm).control, payload=payload, timeout=5.0) if r.ok is not None]
             body = wire.decode(r.ok.payload.to_bytes(), expect=(Reply,)).body
-            assert body.ok is False and body.error
+            assert body.ok is False and body.error and "authenticated" not in body.error, body.error
+        # A request without the key is refused before it is read.
+        (r,) = [r for r in session.get(wire.Keys(cli.swarm).control, payload=wire.encode(Control("faults", {}), 0, 1),
+                                       timeout=5.0) if r.ok is not None]
+        body = wire.decode(r.ok.payload.to_bytes(), expect=(Reply,)).body
+        assert body.ok is False and body.error.startswith("not authenticated (unauthenticated)"), body.error
     finally:
         session.close()
+        ns.close()
     p = cli.control("inject", "cut", "1", "2")
     assert p.returncode == 0, p.stderr
     s = cli.wait_tick(int(p.stdout.split("tick")[-1]) + 5, run)

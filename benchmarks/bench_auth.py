@@ -1,0 +1,108 @@
+"""Benchmark: the cost of frame authentication (docs/security.md) and its share of a UKF-DCL tick.
+
+Takes every radio frame of an in-process wang2019 UKF-DCL run (the frames the agents would
+send, with their real sizes), then times, side by side in one process: sealing (the sender),
+opening (netsim and the receiver each open it) and netsim's delivery tag, per frame, median of
+repetitions. The share of a tick is the auth work of one tick's frames (seal + 2 opens + one
+delivery tag each, as in a lockstep run over netsim) over the time the same run's ticks take
+in process (the estimators' own work, no transport). Usage:
+    python benchmarks/bench_auth.py [--ticks 200] [--repeat 5]
+Timing only; nothing here is a pass/fail test.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import statistics
+import time
+from datetime import date
+
+from machine import cpu_model  # benchmarks/machine.py
+
+from swarmloc import pin_blas
+
+pin_blas()  # before numpy loads
+
+from netsim.sim import Simulation  # noqa: E402
+from swarmloc import auth, wire  # noqa: E402
+from swarmloc import scenario as S  # noqa: E402
+from swarmloc.node import Outbox  # noqa: E402
+from swarmloc.runner import make_nodes  # noqa: E402
+
+
+def frames_of_a_run(ticks: int) -> tuple[list[bytes], float]:
+    """Every radio frame of a wang2019 UKF-DCL run of `ticks` ticks (delivered at once, in
+    order, as a perfect radio would), and the run's wall time per tick."""
+    sc = S.load("wang2019").with_overrides(**{"clock.duration": ticks * 0.5})
+    nodes = make_nodes("ukf-dcl", sc)
+    sim = Simulation(sc)
+    outboxes = {a: Outbox(a) for a in nodes}
+    frames: list[bytes] = []
+    start = time.perf_counter()
+    for _ in range(sc.clock.steps + 1):
+        _, _, sensed = sim.tick()
+        queue = [(a, s) for a in nodes for s in nodes[a].step(sensed[a])]
+        while queue:
+            a, send = queue.pop(0)
+            if not hasattr(send, "msg"):
+                continue  # a timer: lockstep fires none within a tick
+            tx = outboxes[a].encode(send)
+            if tx is None:
+                continue  # over its type's frame limit: never sent
+            frames.append(tx.data)
+            msg = wire.decode(tx.data).body
+            for b in ([send.dst] if send.dst is not None else [x for x in nodes if x != a]):
+                queue += [(b, s) for s in nodes[b].receive(a, msg)]
+    return frames, (time.perf_counter() - start) / (sc.clock.steps + 1)
+
+
+def per_frame(fn, items, repeat: int) -> float:
+    """Median over `repeat` passes of the mean µs per item."""
+    runs = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        for x in items:
+            fn(x)
+        runs.append((time.perf_counter() - t0) / len(items) * 1e6)
+    return statistics.median(runs)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--ticks", type=int, default=200)
+    p.add_argument("--repeat", type=int, default=5)
+    a = p.parse_args()
+    frames, tick_s = frames_of_a_run(a.ticks)
+    ring = auth.Keyring.generate("bench")
+    sealer = auth.Sealer(ring, 1)
+    sealed = [sealer.seal(f) for f in frames]
+    att = wire.encode_delivery(1, 0.0)
+
+    def open_all(_):
+        opener = auth.Opener(ring)  # a fresh window: every frame is new to it
+        for d in sealed:
+            opener.open(d)
+
+    seal_us = per_frame(sealer.seal, frames, a.repeat)
+    open_us = per_frame(open_all, [None], a.repeat) / len(sealed)
+    tag_us = per_frame(lambda d: auth.delivery_tag(ring, 2, att, d), sealed, a.repeat)
+    decode_us = per_frame(wire.decode, frames, a.repeat)
+    sizes = sorted(len(f) for f in frames)
+    per_tick = len(frames) / (a.ticks + 1)
+    auth_tick_us = per_tick * (seal_us + 2 * open_us + tag_us)
+    print(f"# bench_auth ({date.today()}, {platform.python_version()}, {cpu_model()})")
+    print(f"wang2019 UKF-DCL, {a.ticks + 1} ticks: {len(frames)} radio frames, {per_tick:.1f} a tick, "
+          f"sizes median {sizes[len(sizes) // 2]} B (min {sizes[0]}, max {sizes[-1]})")
+    print("| per frame | µs |")
+    print("|---|---|")
+    print(f"| seal (sender) | {seal_us:.2f} |")
+    print(f"| open (netsim, then the receiver) | {open_us:.2f} |")
+    print(f"| netsim's delivery tag | {tag_us:.2f} |")
+    print(f"| wire.decode, for scale | {decode_us:.2f} |")
+    print(f"a tick's frames: {auth_tick_us:.0f} µs of authentication (seal + 2 opens + 1 delivery tag each) against "
+          f"{tick_s * 1e6:.0f} µs of the estimators' work a tick in process: {100 * auth_tick_us / (tick_s * 1e6):.1f} %")
+
+
+if __name__ == "__main__":
+    main()
