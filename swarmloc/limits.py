@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import queue
 import threading
-from collections import OrderedDict, deque
+from collections import OrderedDict
 
 INBOX_FRAMES = 8192
 INBOX_BYTES = 32 << 20
@@ -21,12 +21,15 @@ MAX_SENDERS = 4096  # token buckets kept; the least recently heard sender is for
 
 class Inbox:
     """What Zenoh's callback threads hand a driver's one loop: a FIFO bounded in frames and in
-    bytes. A frame that does not fit is dropped at once and counted (`dropped`, `dropped_bytes`)."""
+    bytes. A frame that does not fit is dropped at once and counted (`dropped`, `dropped_bytes`).
+    The items travel in a SimpleQueue (C, and what the loop's wake-up latency in lockstep
+    needs); only the bookkeeping takes a lock."""
 
     def __init__(self, max_frames: int = INBOX_FRAMES, max_bytes: int = INBOX_BYTES):
         self.max_frames, self.max_bytes = max_frames, max_bytes
-        self._items: deque = deque()
-        self._ready = threading.Condition(threading.Lock())
+        self._items: queue.SimpleQueue = queue.SimpleQueue()
+        self._lock = threading.Lock()
+        self.frames = 0
         self.bytes = 0
         self.dropped = 0
         self.dropped_bytes = 0
@@ -35,28 +38,32 @@ class Inbox:
     def put(self, item, size: int = 0, force: bool = False) -> bool:
         """Queue `item` (`size` bytes of payload); False if it was dropped. `force`: a control
         item of the driver's own (stop), never dropped."""
-        with self._ready:
-            if not force and (len(self._items) >= self.max_frames or self.bytes + size > self.max_bytes):
+        with self._lock:
+            if not force and (self.frames >= self.max_frames or self.bytes + size > self.max_bytes):
                 self.dropped += 1
                 self.dropped_bytes += size
                 return False
-            self._items.append((item, size))
+            self.frames += 1
             self.bytes += size
             self.peak_bytes = max(self.peak_bytes, self.bytes)
-            self._ready.notify()
-            return True
+        self._items.put((item, size))
+        return True
 
     def get(self, timeout: float | None = None):
-        """The oldest item; queue.Empty after `timeout` seconds without one."""
-        with self._ready:
-            if not self._items and not self._ready.wait_for(lambda: self._items, timeout):
-                raise queue.Empty
-            item, size = self._items.popleft()
+        """The oldest item; queue.Empty after `timeout` seconds without one (0: at once)."""
+        if timeout is None:
+            item, size = self._items.get()
+        elif timeout <= 0:
+            item, size = self._items.get_nowait()
+        else:
+            item, size = self._items.get(timeout=timeout)
+        with self._lock:
+            self.frames -= 1
             self.bytes -= size
-            return item
+        return item
 
     def empty(self) -> bool:
-        return not self._items
+        return self._items.empty()
 
     def stats(self) -> dict:
         return {"dropped": self.dropped, "dropped_bytes": self.dropped_bytes, "peak_bytes": self.peak_bytes}
