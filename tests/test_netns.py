@@ -50,15 +50,15 @@ class Lan:
     made = 0  # Lans made by this process: each its own names (a deleted namespace's veth goes later)
 
     def __init__(self, hosts: list[int]):
-        Lan.made += 1
-        tag = f"{os.getpid() % 1000}{Lan.made}"
-        self.bridge = f"slbr{tag}"
-        self.ns = {h: f"slns{tag}-{h}" for h in hosts}
         self.up = []
-        # A subnet no other bridge has: test processes side by side (another checkout's suite)
-        # each take their own, picked and claimed under one lock.
+        # Names and a subnet no other bridge has: Lans made side by side (threads of this test,
+        # another checkout's suite) each take their own, picked and claimed under one lock.
         with open("/tmp/swarmloc-netns.lock", "a") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)
+            Lan.made += 1
+            tag = f"{os.getpid() % 1000}{Lan.made}"
+            self.bridge = f"slbr{tag}"
+            self.ns = {h: f"slns{tag}-{h}" for h in hosts}
             used = subprocess.run(["ip", "-o", "-4", "addr", "show"], check=True, capture_output=True, text=True).stdout
             start = (os.getpid() + Lan.made) % 250
             self.net = next(net for net in (f"10.231.{(start + i) % 250}" for i in range(250)) if f" {net}." not in used)
@@ -241,11 +241,25 @@ is lost. Measured: 0 (equal bit for bit) on a quiet machine; a chain given up on
 load would move an estimate by a fraction of a std."""
 
 
-def test_peers_and_a_router_match_the_lockstep_run(lan, tmp_path, recording):
+def test_two_swarms_on_separate_hosts(lan, tmp_path, recording):
+    """The two set-ups below side by side, each on its own bridge (their checks are the
+    functions below; running them at once halves the wall time)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    (tmp_path / "router").mkdir()
+    (tmp_path / "peers").mkdir()
+    with ThreadPoolExecutor(2) as pool:
+        router = pool.submit(run_swarm, lan, tmp_path / "router", recording, "client", False)
+        peers = pool.submit(run_swarm, lan, tmp_path / "peers", recording, "peer", True)
+        router_run, peers_run = router.result(), peers.result()
+    check_clients_of_a_router_match_the_lockstep_run(recording, *router_run)
+    check_a_host_cut_off_for_10_s_rejoins(recording, *peers_run)
+
+
+def check_clients_of_a_router_match_the_lockstep_run(recording, got, logs):
     """Clients of a router in its own namespace, nothing lost: every agent's every estimate is
     within TOLERANCE of the lockstep run of the same inputs."""
     sc, record, _ = recording
-    got, logs = run_swarm(lan, tmp_path, recording, "client", cut=False)
     ref = record.est["ukf-dcl"]
     assert_no_stall(got, sc)
     for a in sc.agent_ids:
@@ -256,13 +270,12 @@ def test_peers_and_a_router_match_the_lockstep_run(lan, tmp_path, recording):
         assert "Traceback" not in logs[a]
 
 
-def test_a_host_cut_off_for_10_s_rejoins(lan, tmp_path, recording):
+def check_a_host_cut_off_for_10_s_rejoins(recording, got, logs):
     """Peers, each pair joined once; agent 3's link goes down for 10 s. Before the cut the
     agents equal the lockstep run; nobody stalls during it (3 dead-reckons, the others route
     around it); after it the others hear 3 come back, 3's uncertainty falls again, and every
     agent ends within a lockstep std of the lockstep run."""
     sc, record, _ = recording
-    got, logs = run_swarm(lan, tmp_path, recording, "peer", cut=True)
     ref = record.est["ukf-dcl"]
     dt = sc.clock.dt
     assert_no_stall(got, sc)
