@@ -11,7 +11,9 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Literal, Optional
@@ -924,6 +926,11 @@ def _show(rounds, view, line, as_json: bool, watch: bool) -> bool:
                 else:
                     _console().print(view(shown))
     except KeyboardInterrupt:
+        # Ctrl-C is the way out of --watch: if closing the Zenoh session then hangs (a query in
+        # flight), the process still ends, cleanly, 2 s later, as exit_on_sigterm does for SIGTERM.
+        watchdog = threading.Timer(2.0, os._exit, args=(0,))
+        watchdog.daemon = True
+        watchdog.start()
         return False
     return True
 
