@@ -12,6 +12,7 @@ import json
 import logging
 import math
 import os
+import signal
 import sys
 import threading
 import time
@@ -947,6 +948,10 @@ def status(swarm: str = SwarmOpt, connect: Optional[list[str]] = ConnectOpt,
                                        "(what status does when no netsim answers)")):
     """Show a running swarm: tick, agents alive, link table (SNR, delivery ratio, last heard), faults.
     Without netsim (agents on a direct radio), each agent's own counters."""
+    if watch:
+        # Ctrl-C ends --watch even when we were started with SIGINT ignored (a background job
+        # of a non-interactive shell, as the launcher also handles).
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     client = ControlClient(swarm, connect)
     try:
         with client as ctl:
