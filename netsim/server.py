@@ -43,6 +43,9 @@ class SetupError(RuntimeError):
     pass
 
 
+LAST_TICK_GRACE = 2.0  # s a real-time run waits, after its last tick, for the agents to finish it
+
+
 @dataclass
 class ServerConfig:
     swarm: str = "default"
@@ -400,6 +403,14 @@ class NetsimServer:
                     self._realtime_tick()
             wall = time.perf_counter() - self.t0
             self.finished = True
+            if self.mode == "realtime":
+                # Real time waited for nobody: give the live agents a moment to finish the last
+                # tick (its estimate comes before its `done`), or an agent a little behind
+                # would end the run without one.
+                last = self.sim.k
+                killed = self.sim.faults.killed()
+                live = [a for a in self.alive if a not in self.unresponsive and a not in killed]
+                self._pump(lambda: all(a in self.done and self.done[a].k >= last for a in live), LAST_TICK_GRACE)
             agent_stats = self.agent_stats()
             self._put(self.pub_clock, Clock(self.sim.k, self.sim.t, "stop", self.sc.clock.dt))
             return self._finish(wall, agent_stats)
