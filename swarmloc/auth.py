@@ -227,8 +227,8 @@ def check_delivery(keyring: Keyring, receiver: int, attachment: bytes, data: byt
     if len(attachment) <= TAG_BYTES:
         raise AuthError("unauthenticated", "delivery without a tag")
     head, tag = attachment[:-TAG_BYTES], attachment[-TAG_BYTES:]
+    msg = DELIVERY_DOMAIN + keyring.swarm.encode() + b"\0" + struct.pack("<I", receiver) + head + data
     for key in keyring.keys.values():
-        msg = DELIVERY_DOMAIN + keyring.swarm.encode() + b"\0" + struct.pack("<I", receiver) + head + data
         if hmac.compare_digest(tag, hmac.digest(key, msg, "sha256")[:TAG_BYTES]):
             return head
     raise AuthError("bad-delivery", f"to {receiver}")
