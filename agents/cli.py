@@ -699,6 +699,8 @@ _node_fault("radio-off", "Switch a node's radio off: it neither sends nor receiv
 _node_fault("radio-on", "Switch a node's radio back on.", clears=True)
 _node_fault("gnss-off", "GNSS outage on a node: its fixes stop.", clears=False)
 _node_fault("gnss-on", "End a GNSS outage.", clears=True)
+_node_fault("command-off", "Lose a vehicle's command stream: it keeps its last command.", clears=False)
+_node_fault("command-on", "End a command-stream outage.", clears=True)
 _node_fault("kill", "Kill an agent process (with --for, `swarmloc run` restarts it afterwards).", clears=False)
 _node_fault("restart", "Restart a killed agent process.", clears=True)
 

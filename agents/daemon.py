@@ -85,6 +85,8 @@ class AgentDaemon:
         self.rate = limits.RateLimit()
         self.outbox = Outbox(node.id)
         self.sent = 0  # radio frames published
+        self.commands = 0  # actuator commands published (closed loop)
+        self._pub_cmd = None  # declared by open()
         self.consumed = 0  # netsim's delivery number of the last radio frame accepted
         self.clock_k = -1  # tick of the last clock frame
         self.rejected: Counter[str] = Counter()
@@ -160,6 +162,7 @@ class AgentDaemon:
         self._pub_tx = {} if self.cfg.direct else self.session.declare_publisher(self.keys.radio_tx(aid), **block)
         self._pub_est = self.session.declare_publisher(self.keys.estimate(aid), **radio)
         self._pub_done = self.session.declare_publisher(self.keys.done(aid), **block)
+        self._pub_cmd = self.session.declare_publisher(self.keys.command(aid), **block)
         self._radio_options = radio
         self._stats_key = self.keys.stats(aid)
         self._stats_q = self.session.declare_queryable(self._stats_key, lambda q: put(("stats", q, None)))
@@ -196,7 +199,7 @@ class AgentDaemon:
                 "ticks_skipped": self.ticks_skipped,
                 "sensor_lag_ms_median": lag[len(lag) // 2] * 1e3 if lag else None,
                 "sensor_lag_ms_max": lag[-1] * 1e3 if lag else None,
-                "sent": self.sent, "consumed": self.consumed, "rejected": dict(self.rejected),
+                "sent": self.sent, "commands": self.commands, "consumed": self.consumed, "rejected": dict(self.rejected),
                 **({"peers": sorted(self.peers), "peer_delay_ms": {
                     a: {"min": min(d) * 1e3, "median": float(np.median(d)) * 1e3}
                     for a, d in sorted(self.peer_delay.items()) if d}} if self.cfg.direct else {}),
@@ -227,7 +230,7 @@ class AgentDaemon:
                 unacked = False
                 self._publish_estimate()
                 # Always acknowledge, even a rejected input: lockstep must not wait on us for nothing.
-                self._pub_done.put(self._seal(wire.encode(Done(self.node.k, self.consumed, self.sent), self.node.id,
+                self._pub_done.put(self._seal(wire.encode(Done(self.node.k, self.consumed, self.sent, self.commands), self.node.id,
                                                           self.handled)))
             wait = min([0.5, *(s.wait(time.monotonic()) for s in self.sources)])
             if not self.node.synchronous and (due := self.timers.next_due()) is not None:
@@ -506,6 +509,15 @@ class AgentDaemon:
             self._pub_tx.put(data, attachment=wire.encode_send_time(time.perf_counter()))
         self.sent += 1
 
+    def _publish_command(self) -> None:
+        """Closed loop: the node's command from the estimate just published, numbered 1, 2, 3...
+        (the count goes into `done`, so lockstep waits for it)."""
+        cmd = self.node.command() if self._pub_cmd is not None else None
+        if cmd is None:
+            return
+        self.commands += 1
+        self._pub_cmd.put(self._seal(wire.encode(cmd, self.node.id, self.commands)))
+
     def _publish_estimate(self) -> None:
         if self.node.model.state_dim == 0:
             return  # a ground station localizes nothing
@@ -514,6 +526,7 @@ class AgentDaemon:
         if sig == self._last_published or e.k < 0:
             return
         self._last_published = sig
+        self._publish_command()
         if self._log is not None:
             self._log.write(json.dumps({"k": e.k, "t": self.frame_t, "wall": time.time(), "mean": e.mean.tolist(),
                                         "cov": e.cov.tolist()}) + "\n")

@@ -261,7 +261,7 @@ def acl_rules(swarm: str, agent_ids, direct: bool = False) -> dict:
     # forward to it. Its own keys only, except radio/rx/* in direct mode.
     for a in ids:
         r = f"agent-{a}"
-        puts = [k.radio_tx(a), k.estimate(a), k.done(a)] + ([f"{p}/radio/rx/*"] if direct else [])
+        puts = [k.radio_tx(a), k.estimate(a), k.done(a), k.command(a)] + ([f"{p}/radio/rx/*"] if direct else [])
         rules += [
             _rule(f"{r}-put", ["put"], "ingress", puts),
             # Others' subscriptions forwarded to it: without them a Zenoh publisher's write
@@ -294,8 +294,9 @@ def acl_rules(swarm: str, agent_ids, direct: bool = False) -> dict:
         _rule("netsim-put", ["put"], "ingress",
               [k.clock, f"{p}/agent/*/sensors", f"{p}/truth/*", f"{p}/radio/rx/*", k.links, k.events]),
         _rule("netsim-sub", ["declare_subscriber"], "ingress",
-              [f"{p}/radio/tx/*", f"{p}/agent/*/estimate", f"{p}/agent/*/done"]),
-        _rule("netsim-recv", ["put"], "egress", [f"{p}/radio/tx/*", f"{p}/agent/*/estimate", f"{p}/agent/*/done"]),
+              [f"{p}/radio/tx/*", f"{p}/agent/*/estimate", f"{p}/agent/*/done", f"{p}/agent/*/command"]),
+        _rule("netsim-recv", ["put"], "egress",
+              [f"{p}/radio/tx/*", f"{p}/agent/*/estimate", f"{p}/agent/*/done", f"{p}/agent/*/command"]),
         _rule("netsim-alive", ["declare_liveliness_subscriber", "liveliness_query"], "ingress", [f"{p}/agent/*/alive"]),
         _rule("netsim-alive-recv", ["liveliness_token"], "egress", [f"{p}/agent/*/alive"]),
         _rule("netsim-control", ["declare_queryable", "reply"], "ingress", [k.control]),

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from swarmloc.faults import (ClearLoss, Cut, FaultError, GnssOff, GnssOn, Heal, JammerOff, JammerOn, Kill, Loss,
+from swarmloc.faults import (ClearLoss, CommandOff, CommandOn, Cut, FaultError, GnssOff, GnssOn, Heal, JammerOff, JammerOn, Kill, Loss,
                              Partition, RadioOff, RadioOn, Restart, Restore, _Fault, inverse_of, nodes_named)
 
 
@@ -159,6 +159,9 @@ class FaultState:
     def gnss_ok(self, node: int) -> bool:
         return node not in {f.node for f in self._of(GnssOff)}
 
+    def command_ok(self, node: int) -> bool:
+        return node not in {f.node for f in self._of(CommandOff)}
+
     def killed(self) -> set[int]:
         return {f.node for f in self._of(Kill)}
 
@@ -185,6 +188,8 @@ def _clears(clearing: _Fault, f: _Fault) -> bool:
             return isinstance(f, JammerOn) and f.name == clearing.name
         case GnssOn():
             return isinstance(f, GnssOff) and f.node == clearing.node
+        case CommandOn():
+            return isinstance(f, CommandOff) and f.node == clearing.node
         case Restart():
             return isinstance(f, Kill) and f.node == clearing.node
     return False

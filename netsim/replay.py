@@ -69,7 +69,7 @@ class ReplayWorld:
         """Vicon poses at the current tick (NaN where Vicon has none)."""
         return {r: self.ticks[r].truth[max(self.k, 0)].copy() for r in self.ids}
 
-    def step(self, gnss_ok=lambda a: True) -> dict[int, Sensors]:
+    def step(self, gnss_ok=lambda a: True, link_ok=lambda a, b: True) -> dict[int, Sensors]:
         self.k += 1
         self.t = self.k * self.dt
         k = self.k

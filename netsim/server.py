@@ -29,7 +29,7 @@ import zenoh
 from netsim.sim import Simulation
 from swarmloc import auth, limits, wire
 from swarmloc.faults import FaultError, inverse_of, nodes_named, parse_fault
-from swarmloc.messages import Clock, Control, Done, EstimateMsg, Event, LinkMsg, LinkNack, Links, Reply, Truth
+from swarmloc.messages import Clock, Command, Control, Done, EstimateMsg, Event, LinkMsg, LinkNack, Links, Reply, Truth
 from swarmloc.node import Estimate, RadioRx, RadioTx
 from swarmloc.estimators import REGISTRY
 from swarmloc.results import RunRecord, compute_references, metrics, write_run
@@ -81,8 +81,12 @@ class NetsimServer:
         self.received = {a: 0 for a in self.ids}
         # Envelope seq of the last accepted `done` and `estimate` per agent: each increases.
         self.last_seq = {kind: {a: -1 for a in self.ids} for kind in ("done", "estimate")}
+        # Commands an agent published since it (re)joined, numbered 1, 2, 3... (envelope seq):
+        # lockstep waits until it has the number its last `done` states.
+        self.commands = {a: 0 for a in self.ids}
         self.tick_timeouts = 0  # times a lockstep tick waited out tick_timeout
-        self.rejected: dict[str, Counter[str]] = {k: Counter() for k in ("tx", "done", "estimate", "alive", "control")}
+        self.rejected: dict[str, Counter[str]] = {k: Counter() for k in ("tx", "done", "estimate", "command", "alive",
+                                                                        "control")}
         self.agent_events: list[dict] = []  # agents leaving (crash, kill) or joining after tick 0
         # Lockstep always resolves frames in rounds, in (sender, seq) order, never on arrival:
         # with arrival order a node could meet a token and a log replay in either order.
@@ -122,6 +126,7 @@ class NetsimServer:
             self.session.declare_subscriber(f"{k.prefix}/radio/tx/*", frame("tx", True)),
             self.session.declare_subscriber(f"{k.prefix}/agent/*/done", frame("done")),
             self.session.declare_subscriber(f"{k.prefix}/agent/*/estimate", frame("estimate")),
+            self.session.declare_subscriber(f"{k.prefix}/agent/*/command", frame("command")),
             self.session.liveliness().declare_subscriber(f"{k.prefix}/agent/*/alive", lambda s: put(("alive", str(s.key_expr), s.kind, None)), history=True),
         ]
         self._ctl = self.session.declare_queryable(k.control, lambda q: put(("ctl", "", q, None)))
@@ -212,6 +217,8 @@ class NetsimServer:
                 nis = () if body.nis is None else tuple((float(v), int(d)) for v, d in body.nis)
                 targets = tuple((t.target, t.mean, t.cov) for t in body.targets)
                 self.record.add_estimate(body.algorithm, aid, Estimate(body.k, body.mean, body.cov, nis, targets))
+        elif kind == "command":
+            self._on_command(key, payload)
         elif kind == "alive":
             try:
                 aid = wire.Keys.agent_of(key)
@@ -230,7 +237,7 @@ class NetsimServer:
             # A (re)joining agent starts counting from zero and is waited for from the next tick.
             self.alive.add(aid)
             self.sim.down.discard(aid)
-            self.delivered[aid] = self.received[aid] = 0
+            self.delivered[aid] = self.received[aid] = self.commands[aid] = 0
             for seqs in self.last_seq.values():
                 seqs[aid] = -1
             self.done.pop(aid, None)
@@ -269,6 +276,26 @@ class NetsimServer:
             self._new_event = True
         else:
             self.round.append(tx)
+
+    def _on_command(self, key: str, payload: bytes | None) -> None:
+        """An agent's actuator command: in force from the next tick (netsim.sim.Simulation.command).
+        A malformed body still counts as the command its number says, so lockstep does not wait
+        for it; the vehicle keeps its last command."""
+        got = self._from_agent("command", key, payload)
+        if got is None:
+            return
+        aid, env = got
+        if aid not in self.alive:
+            return self._refuse("command", key, "not-joined")
+        if env.seq <= self.commands[aid]:
+            return self._refuse("command", key, "stale", f"seq {env.seq}")
+        self.commands[aid] = env.seq
+        try:
+            u = wire.decode_body(Command, env.body).u
+        except wire.WireError as exc:
+            log.warning("agent %s: malformed command dropped: %s", aid, exc)
+            u = None
+        self.sim.command(aid, u)
 
     def _deliver_all(self, rxs: list[RadioRx], arrived: float | None = None) -> None:
         for rx in rxs:
@@ -381,7 +408,8 @@ class NetsimServer:
 
     def _quiet_agent(self, a: int, k: int) -> bool:
         d = self.done.get(a)
-        return d is not None and d.k >= k and d.consumed == self.delivered[a] and d.sent == self.received[a]
+        return (d is not None and d.k >= k and d.consumed == self.delivered[a] and d.sent == self.received[a]
+                and d.commands <= self.commands[a])
 
     def _quiet(self, k: int) -> bool:
         return all(self._quiet_agent(a, k) for a in self._waited_for())
@@ -544,6 +572,7 @@ class NetsimServer:
             "agent_events": self.agent_events,
             "rejected": {kind: dict(c) for kind, c in self.rejected.items()},
             "inbox": self.q.stats(),
+            **({"commands": self.sim.commands} if self.sim.commands else {}),
         }
         algorithms = REGISTRY.order({self.sc.estimator.name, *self.sc.reference_names, *self.record.est})
         if self.cfg.out is None:

@@ -211,13 +211,35 @@ class Simulation:
             self.apply(f, "duration")
         for f in live_faults:
             self.apply(f, "live")
-        frames = self.world.step(self.faults.gnss_ok)
+        frames = self.world.step(self.faults.gnss_ok, lambda a, b: self.faults.blocked(a, b) is None)
         self.medium.set_positions(self.world.pos)
         self.medium.set_jammers([Jammer(tuple(pos), f.power_dbm, self.t, float("inf"), f.band_hz)
                                  for f, pos in self.faults.jammers(self.t)])
         self.vt = max(self.t, self.medium.now)
         self._record_links()
         return self.k, self.t, frames
+
+    def command(self, aid: int, u) -> str | None:
+        """An agent's actuator command for its vehicle, in force from the next tick: None when
+        applied, else why not ("command-off": a fault keeps the stream from the vehicle;
+        "malformed", "not-a-vehicle"). Counted in `commands`."""
+        fleet = getattr(self.world, "vehicles", None)
+        if fleet is None:
+            return "not-a-vehicle"
+        if not self.faults.command_ok(aid):
+            fleet.commands["command-off"] += 1
+            return "command-off"
+        return fleet.command(aid, u)
+
+    @property
+    def commands(self) -> dict:
+        """Closed loop: the commands received (`applied`, or refused by reason; an agent may send
+        several in a tick, the last one counts) and per vehicle the ticks it flew on an older
+        command (`held_ticks`); {} when the agents command nothing."""
+        fleet = getattr(self.world, "vehicles", None)
+        if fleet is None or fleet.autopilot:
+            return {}
+        return {"received": dict(sorted(fleet.commands.items())), "held_ticks": {str(a): n for a, n in fleet.held.items()}}
 
     def targets(self) -> dict[int, np.ndarray]:
         """True target positions now ({} without targets)."""

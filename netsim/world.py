@@ -13,6 +13,7 @@ import math
 import numpy as np
 
 from swarmloc.messages import GnssMsg, OdometryMsg, RangeBearingMsg, RangeMsg, Sensors, TargetRangeMsg
+from swarmloc.models import VEHICLES
 from swarmloc.scenario import CircleMotion, Scenario
 
 PLANAR_MODELS = ("planar-speed-heading", "planar-pose")
@@ -45,9 +46,17 @@ class World:
             from netsim.uas_world import UasFleet
 
             self.fleet = UasFleet(scenario, uas, seed)
+        vehicles = sorted(a.id for a in scenario.world.agents if a.model in VEHICLES)
+        self.vehicles = None
+        if vehicles:
+            from netsim.vehicle_world import VehicleFleet
+
+            self.vehicles = VehicleFleet(scenario, vehicles, seed)
         self.pos = {a.id: np.array(a.start, float) for a in scenario.world.agents}
         if self.fleet is not None:
             self.pos.update(self.fleet.positions())
+        if self.vehicles is not None:
+            self.pos.update(self.vehicles.positions())
         self.heading = {a.id: float(a.heading) for a in self.planar}
         self.turn = {a.id: self._initial_turn(a.motion) for a in self.planar}
         # The odometry's own heading: the integral of the measured turn rate from the known start.
@@ -112,12 +121,16 @@ class World:
                     else np.r_[self.pos[a.id], self.heading[a.id]] for a in self.planar})
         if self.fleet is not None:
             out.update(self.fleet.states())
+        if self.vehicles is not None:
+            out.update(self.vehicles.states())
         return out
 
-    def step(self, gnss_ok=lambda a: True) -> dict[int, Sensors]:
+    def step(self, gnss_ok=lambda a: True, link_ok=lambda a, b: True) -> dict[int, Sensors]:
         """Advance to the next tick; return every agent's sensor frame for it.
 
-        gnss_ok(a) False means agent a's GNSS is out (a fault): its frame carries no fix."""
+        gnss_ok(a) False means agent a's GNSS is out (a fault): its frame carries no fix.
+        link_ok(a, b) False: the radio link a -> b is blocked by a fault, and so is the
+        cooperative sensing of a vehicle's relative position."""
         self.k += 1
         self.t = self.k * self.dt
         out = {a: Sensors(self.k, self.t, None, []) for a in self.ids}
@@ -125,6 +138,10 @@ class World:
             for a, fields in self.fleet.step(self.k, gnss_ok).items():
                 out[a] = Sensors(self.k, self.t, None, **fields)
             self.pos.update(self.fleet.positions())
+        if self.vehicles is not None:
+            for a, fields in self.vehicles.step(self.k, gnss_ok, link_ok).items():
+                out[a] = Sensors(self.k, self.t, **fields)
+            self.pos.update(self.vehicles.positions())
         if self.planar:
             out.update(self._step_planar(gnss_ok))
         return out

@@ -118,6 +118,19 @@ class GnssOn(_Fault):
     node: int
 
 
+class CommandOff(_Fault):
+    """The vehicle's command stream is lost: commands the agent publishes never reach the vehicle,
+    which keeps the last one that did (closed loop, `world.control: agents`)."""
+
+    action: Literal["command-off"] = "command-off"
+    node: int
+
+
+class CommandOn(_Fault):
+    action: Literal["command-on"] = "command-on"
+    node: int
+
+
 class Kill(_Fault):
     """Kill the agent process (the launcher does it); with duration, restart it afterwards."""
 
@@ -131,15 +144,15 @@ class Restart(_Fault):
 
 
 Fault = Annotated[Union[Cut, Restore, RadioOff, RadioOn, Partition, Heal, Loss, ClearLoss, JammerOn, JammerOff,
-                        GnssOff, GnssOn, Kill, Restart], Field(discriminator="action")]
+                        GnssOff, GnssOn, CommandOff, CommandOn, Kill, Restart], Field(discriminator="action")]
 FAULT_ADAPTER = TypeAdapter(Fault)
 FAULT_TYPES = (Cut, Restore, RadioOff, RadioOn, Partition, Heal, Loss, ClearLoss, JammerOn, JammerOff, GnssOff, GnssOn,
-               Kill, Restart)
+               CommandOff, CommandOn, Kill, Restart)
 ACTIONS = [t.model_fields["action"].default for t in FAULT_TYPES]
 
 # What clears what: the inverse of each activating fault, used by `duration` and by `clear`.
 INVERSE = {"cut": "restore", "radio-off": "radio-on", "partition": "heal", "loss": "clear-loss",
-           "jammer": "jammer-off", "gnss-off": "gnss-on", "kill": "restart"}
+           "jammer": "jammer-off", "gnss-off": "gnss-on", "command-off": "command-on", "kill": "restart"}
 
 
 class FaultError(ValueError):
@@ -178,6 +191,8 @@ def inverse_of(f: _Fault) -> _Fault | None:
             return JammerOff(name=f.name)
         case GnssOff():
             return GnssOn(node=f.node)
+        case CommandOff():
+            return CommandOn(node=f.node)
         case Kill():
             return Restart(node=f.node)
     return None

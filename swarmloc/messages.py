@@ -134,6 +134,20 @@ class AlignMsg:
     P: SqMat
 
 
+@message("vehicle")
+class VehicleMsg:
+    """A vehicle's own readings over the last `dt` (quadrotor or ground robot, Oliveros &
+    Ashrafiuon 2023): the actuator command that was in force (its flight controller reports what
+    it applied), the IMU's orientation, and the relative positions it measured, each in its own
+    body frame (x forward, y left, z up)."""
+
+    dt: Std
+    u: Annotated[np.ndarray, Array(1, bound=SENSOR)]
+    attitude: Annotated[np.ndarray, Array(1, bound=SENSOR)]
+    attitude_std: Std
+    seen: Annotated[list, ListOf(Nested(RelPosMsg), max_len=64)] = field(default_factory=list)
+
+
 @message("sensors")
 class Sensors:
     """One agent's sensor frame for tick k; relative measurements in the order they were taken.
@@ -153,6 +167,7 @@ class Sensors:
     targets: Annotated[list, ListOf(Nested(TargetRangeMsg), max_len=64)] = field(default_factory=list)
     rb: Annotated[list, ListOf(Nested(RangeBearingMsg), max_len=64)] = field(default_factory=list)
     landmarks: Annotated[list, ListOf(Nested(RangeBearingMsg), max_len=64)] = field(default_factory=list)
+    vehicle: Annotated[VehicleMsg | None, Optional(Nested(VehicleMsg))] = None
 
 
 @message("truth")
@@ -194,6 +209,16 @@ class Done:
     k: Annotated[int, Int(-1, 2**40)]  # -1: no tick handled yet
     consumed: Annotated[int, Int(0)]
     sent: Annotated[int, Int(0)]
+    commands: Annotated[int, Int(0)] = 0  # actuator commands published so far (closed loop)
+
+
+@message("command")
+class Command:
+    """Agent -> its vehicle (netsim): the actuator command computed from the agent's estimate of
+    tick k, in force from tick k+1 until the next one arrives."""
+
+    k: Tick
+    u: Annotated[np.ndarray, Array(1, bound=SENSOR)]
 
 
 # --------------------------------------------------------------------------- radio payloads
@@ -355,6 +380,17 @@ class CtlFix:
     mean: Vec
     cov: SqMat
     targets: Annotated[list, ListOf(Nested(TargetRangeMsg), max_len=64)]
+
+
+@message("veh.pose")
+class VehiclePose:
+    """ekf-local (vehicles, no CL), broadcast every tick: the sender's estimate of tick k after
+    its own sensors (command, IMU, GPS) and before any relative measurement of the tick, in its
+    model's state layout (swarmloc/vehicles.py), and its covariance."""
+
+    k: Tick
+    x: Vec
+    P: SqMat
 
 
 # EKF fusion centre (Goel et al. section 3): UAS send their inputs, the centre runs the joint EKF.

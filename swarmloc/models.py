@@ -161,7 +161,45 @@ class GroundStation(MotionModel):
         return x, np.zeros((0, 0)), np.zeros((0, 0))
 
 
-MOTION_MODELS: dict[str, MotionModel] = {m.name: m for m in (PlanarSpeedHeading(), PlanarPose(), UasIns(), GroundStation())}
+class Vehicle(MotionModel):
+    """A vehicle of Oliveros & Ashrafiuon 2023 driven by its actuator inputs (swarmloc/vehicles.py
+    holds the dynamics): a quadrotor's 13 states [position, quaternion (scalar first), body velocity,
+    body rates] or a ground robot's 7 [position, yaw, surge speed, climb rate, yaw rate]. Its
+    filters (swarmloc/estimators/vehicle_ekf.py) propagate with the command in force, not with
+    odometry."""
+
+    position_dim = 3
+    identity_transition = False
+
+    def __init__(self, name: str, state_dim: int):
+        self.name, self.state_dim = name, state_dim
+
+    @property
+    def dynamics(self):
+        from swarmloc.vehicles import MODELS
+
+        return MODELS[self.name]
+
+    def predict(self, x, u):
+        raise TypeError(f"{self.name} is propagated with its actuator command (swarmloc/vehicles.py), not odometry")
+
+    def error(self, x_true, x_est):
+        e = np.asarray(x_true, float) - np.asarray(x_est, float)
+        if self.name == "ground-robot":
+            e[..., 3] = (e[..., 3] + np.pi) % (2 * np.pi) - np.pi
+        return e
+
+    @property
+    def layout(self):
+        return StateLayout(self.state_dim, slice(0, 3))
+
+
+QUADROTOR = Vehicle("quadrotor", 13)
+GROUND_ROBOT = Vehicle("ground-robot", 7)
+VEHICLES = (QUADROTOR.name, GROUND_ROBOT.name)
+
+MOTION_MODELS: dict[str, MotionModel] = {m.name: m for m in (PlanarSpeedHeading(), PlanarPose(), UasIns(), GroundStation(),
+                                                             QUADROTOR, GROUND_ROBOT)}
 
 
 class RelativeMeasurement:

@@ -212,6 +212,13 @@ class Node:
         nothing sent to it arrives until `peer_joined`, and no radio will say so."""
         return []
 
+    def command(self):
+        """Closed loop: the actuator command (swarmloc.messages.Command) for the vehicle, computed
+        from the current estimate, or None for a node that commands nothing. The driver publishes
+        it after each estimate; it must depend only on the node's state, so asking twice within
+        a tick gives the same command."""
+        return None
+
     def estimate(self) -> Estimate:
         return Estimate(self.k, self.x.copy(), self.P.copy())
 

@@ -38,6 +38,9 @@ class Environment(Protocol):
     def exchange(self, frames: list) -> list:
         """One lockstep round: frames (src, dst, seq, data) in, deliveries (receiver, t, data | nack) out."""
 
+    def command(self, aid: int, u) -> str | None:
+        """A vehicle's actuator command, in force from the next tick (closed loop)."""
+
 
 class InProcessRunner:
     """Lockstep in rounds, exactly as the netsim process runs it: every frame the nodes send in
@@ -77,11 +80,21 @@ class InProcessRunner:
             record.add_tick(k, t, frames, self.env.truth(), self.env.targets())
             for a, node in self.nodes.items():
                 record.add_estimate(node.algorithm, a, estimate_of(node))
+            self._command()
             if on_tick:
                 on_tick(k, frames)
         return record
 
 
+
+    def _command(self) -> None:
+        """Each closed-loop node's command from its final estimate of the tick, through the wire
+        codec, to the world: netsim applies the last command an agent published before its
+        final `done` of the tick, which is this one."""
+        for a in sorted(self.nodes):
+            cmd = self.nodes[a].command()
+            if cmd is not None:
+                self.env.command(a, wire.decode(wire.encode(cmd, a, 1)).body.u)
 
     def _deliver(self, rx: RadioRx) -> list:
         node = self.nodes[rx.receiver]

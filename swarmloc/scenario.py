@@ -88,20 +88,43 @@ class StaticMotion(_Strict):
     kind: Literal["static"] = "static"
 
 
-Motion = Annotated[Union[CircleMotion, RandomMotion, Figure8Motion, OrbitMotion, Random3dMotion, StaticMotion],
+class TrackMotion(_Strict):
+    """A quadrotor or ground robot following a circle under its tracking controller
+    (swarmloc/vehicles.py); the vehicle starts at rest at the agent's `start`, yaw `heading`."""
+
+    kind: Literal["track"] = "track"
+    center: list[float] | None = Field(None, description="the circle's centre (m, 3 numbers; z is the height flown "
+                                       "or driven at); null: the agent's start")
+    radius: float = Field(0.0, ge=0, description="m; 0: hold the centre")
+    period: float = Field(30.0, description="s per lap; negative: clockwise")
+    phase: float = Field(0.0, description="rad: the reference's angle around the centre at t = 0, counter-clockwise "
+                         "from east")
+    yaw: float | None = Field(None, description="a constant yaw to hold (rad); null: face along the circle")
+
+    @model_validator(mode="after")
+    def _shape(self):
+        if self.center is not None and (len(self.center) != 3 or not all(math.isfinite(v) for v in self.center)):
+            raise ValueError("center must be 3 finite numbers")
+        if self.period == 0 or not math.isfinite(self.period):
+            raise ValueError("period must be a finite non-zero number of seconds")
+        return self
+
+
+Motion = Annotated[Union[CircleMotion, RandomMotion, Figure8Motion, OrbitMotion, Random3dMotion, StaticMotion, TrackMotion],
                    Field(discriminator="kind")]
 # Which motions each model's world can fly: planar robots drive, UAS fly 3D trajectories placed
 # so that they pass through `start` at t = 0, a ground station stays where it is.
 MOTIONS_OF_MODEL = {"planar-speed-heading": ("circle", "random"), "planar-pose": ("circle", "random"), "uas-ins": ("figure8", "orbit", "random3d"),
-                    "ground-station": ("static",)}
+                    "ground-station": ("static",), "quadrotor": ("track",), "ground-robot": ("track",)}
 
 
 class AgentSpec(_Strict):
     id: int = Field(ge=0, description="agent id, unique in the swarm")
     model: str = Field("planar-speed-heading", description="motion model name (swarmloc.models.MOTION_MODELS)")
     start: list[float] = Field(description="initial position (m), known to the agent: 2 numbers for a planar model, "
-                               "3 (east, north, up) for uas-ins and ground-station")
-    heading: float = Field(0.0, description="planar: initial heading (rad), known to the agent")
+                               "3 (east, north, up) for uas-ins, ground-station, quadrotor and ground-robot")
+    heading: float = Field(0.0, description="planar, quadrotor, ground-robot: initial heading (yaw, rad), known to the "
+                           "agent")
     motion: Motion | None = Field(None, description="how the platform moves; default: circle (planar), figure8 (uas-ins), "
                                   "static (ground-station)")
 
@@ -119,7 +142,8 @@ class AgentSpec(_Strict):
             raise ValueError(f"start must be {want} finite numbers for model {self.model}")
         kinds = MOTIONS_OF_MODEL[self.model]
         if self.motion is None:
-            default = {"circle": CircleMotion, "figure8": Figure8Motion, "static": StaticMotion}[kinds[0]]
+            default = {"circle": CircleMotion, "figure8": Figure8Motion, "static": StaticMotion,
+                       "track": TrackMotion}[kinds[0]]
             object.__setattr__(self, "motion", default())
         elif self.motion.kind not in kinds:
             raise ValueError(f"motion {self.motion.kind!r} does not fit model {self.model} (one of {list(kinds)})")
@@ -180,6 +204,11 @@ class World(_Strict):
     targets: list[TargetSpec] = Field(default_factory=list, description="targets to localize (CSL-CTL, IL-CTL)")
     stop_distance: float | None = Field(None, gt=0, description="the run ends at the first tick at which an agent is "
                                         "within this distance of a target (m); null: it runs `clock.duration`")
+    control: Literal["netsim", "agents"] = Field("netsim", description="quadrotors and ground robots: who closes each "
+                                                 "vehicle's loop. netsim: its autopilot is fed the true state (the "
+                                                 "paper's validation runs, motion capture in the loop); agents: each "
+                                                 "agent computes the command from its own estimate and publishes it "
+                                                 "(docs/wire.md, `command`)")
 
     @field_validator("agents")
     @classmethod
@@ -291,6 +320,59 @@ class RangeBearingSensor(_Strict):
     bearing_noise: float = Field(0.05, gt=0, description="std of a bearing (rad), as the estimators assume it")
 
 
+class GpsSchedule(_Strict):
+    """When the vehicles' GPS has a fix: none before `start`, then `on_for` seconds with a fix,
+    `off_for` seconds without, repeating (`off_for: 0`: always from `start` on)."""
+
+    start: float = Field(0.0, ge=0, description="s")
+    on_for: float = Field(math.inf, gt=0, description="s")
+    off_for: float = Field(0.0, ge=0, description="s")
+
+    def active(self, t: float) -> bool:
+        if t < self.start:
+            return False
+        if self.off_for == 0 or not math.isfinite(self.on_for):
+            return True
+        return (t - self.start) % (self.on_for + self.off_for) < self.on_for
+
+
+class VehicleSensors(_Strict):
+    """Quadrotors and ground robots (Oliveros & Ashrafiuon 2023, section 6.1): an IMU's
+    orientation every tick, relative positions in the measurer's body frame along the measurement
+    graph within the proximity of the pair's types, GPS on a schedule. The world perturbs every
+    actuator input with white noise held over the tick: the process noise of the estimators."""
+
+    attitude_noise: float = Field(0.01, gt=0, description="std of each IMU orientation component (quaternion "
+                                  "components for a quadrotor; yaw, rad, for a ground robot)")
+    relpos_noise: float = Field(0.005, gt=0, description="std of each component of a relative position (m)")
+    gps_noise: float = Field(0.005, gt=0, description="std of each coordinate of a GPS fix (m)")
+    gps: list[int] = Field(default_factory=list, description="vehicles with GPS")
+    gps_schedule: GpsSchedule = Field(default_factory=GpsSchedule)
+    graph: list[tuple[int, int]] | None = Field(None, description="the measurement graph: [base, target] pairs, the "
+                                                "base measuring the target; null: every ordered pair")
+    proximity: dict[str, float] = Field(default_factory=dict, description="sensing range (m) by the pair's types, "
+                                        "e.g. {quadrotor/quadrotor: 4, quadrotor/ground-robot: 2} (either order); "
+                                        "a pair of types not listed: unlimited")
+    force_noise: float = Field(0.02, ge=0, description="std of the noise on a thrust or surge force (N)")
+    moment_noise: float = Field(2e-4, ge=0, description="std of the noise on a moment (N m)")
+
+    def range_of(self, a: str, b: str) -> float:
+        return self.proximity.get(f"{a}/{b}", self.proximity.get(f"{b}/{a}", math.inf))
+
+    @field_validator("proximity")
+    @classmethod
+    def _pair_names(cls, v):
+        from swarmloc.models import VEHICLES
+
+        for key, r in v.items():
+            parts = key.split("/")
+            if len(parts) != 2 or not set(parts) <= set(VEHICLES):
+                raise ValueError(f"proximity key {key!r} is not '<type>/<type>' of {list(VEHICLES)}")
+            if not r > 0:
+                raise ValueError(f"proximity[{key}] must be > 0, got {r}")
+        return v
+
+
 class Sensors(_Strict):
     range_bearing: RangeBearingSensor = Field(default_factory=RangeBearingSensor)
     odometry: OdometrySensor = Field(default_factory=OdometrySensor)
@@ -299,6 +381,7 @@ class Sensors(_Strict):
     imu: ImuSensor = Field(default_factory=ImuSensor)
     relpos: RelPosSensor = Field(default_factory=RelPosSensor)
     target_range: TargetRangeSensor = Field(default_factory=TargetRangeSensor)
+    vehicle: VehicleSensors = Field(default_factory=VehicleSensors)
     epoch: float = Field(1.0, gt=0, description="UAS: seconds between GNSS epochs and between relative measurements "
                          "(a whole number of ticks)")
 
@@ -444,6 +527,7 @@ class Scenario(_Strict):
             if len(uas) > 65 and (self.sensors.relpos.enabled or self.sensors.range.all_pairs):
                 raise ValueError("sensors.relpos / sensors.range.all_pairs: a frame carries at most 64 relative "
                                  f"measurements, and {len(uas)} UAS would measure {len(uas) - 1}")
+        self._vehicles_fit(ids)
         from swarmloc.estimators import REGISTRY
 
         info = REGISTRY[self.estimator.name]
@@ -456,6 +540,27 @@ class Scenario(_Strict):
             if not models <= set(REGISTRY[r].models):
                 raise ValueError(f"reference {r} runs on models {list(REGISTRY[r].models)}, the swarm has {sorted(models)}")
         return self
+
+    def _vehicles_fit(self, ids: set[int]) -> None:
+        from swarmloc.models import VEHICLES
+
+        vehicles = {a.id for a in self.world.agents if a.model in VEHICLES}
+        v = self.sensors.vehicle
+        if set(v.gps) - vehicles:
+            raise ValueError(f"sensors.vehicle.gps names agents that are not vehicles {sorted(set(v.gps) - vehicles)}")
+        for b, t in v.graph or ():
+            if b not in vehicles or t not in vehicles or b == t:
+                raise ValueError(f"sensors.vehicle.graph: [{b}, {t}] must name two different vehicles "
+                                 f"(the vehicles: {sorted(vehicles)})")
+        if vehicles and any(a.model not in VEHICLES + ("ground-station",) for a in self.world.agents):
+            raise ValueError("quadrotor and ground-robot agents fly with other vehicles and ground stations only, got "
+                             f"{sorted({a.model for a in self.world.agents})}")
+        if vehicles and self.clock.dt > VEHICLE_MAX_DT:
+            raise ValueError(f"clock.dt = {self.clock.dt} s: quadrotor and ground-robot agents need clock.dt <= "
+                             f"{VEHICLE_MAX_DT} s (their dynamics are integrated and their controllers sample once a "
+                             "tick; the paper runs at 50 Hz)")
+        if self.world.control == "agents" and not vehicles:
+            raise ValueError("world.control: agents needs quadrotor or ground-robot agents")
 
     @property
     def agent_ids(self) -> list[int]:
@@ -490,10 +595,12 @@ class Scenario(_Strict):
         std = np.full(len(start), est.initial_std)
         if spec.model == "planar-pose":  # the heading is known too
             start, std = np.r_[start, spec.heading], np.r_[std, est.initial_heading_std]
+        rng = np.random.default_rng([self.seed, PRIOR_STREAM, aid])
+        if spec.model in ("quadrotor", "ground-robot"):
+            return _vehicle_prior(spec, est, rng)
         P0 = np.diag(std**2)
         if not est.initial_error:
             return start, P0
-        rng = np.random.default_rng([self.seed, PRIOR_STREAM, aid])
         return start + std * rng.standard_normal(len(start)), P0
 
     def with_overrides(self, **changes) -> "Scenario":
@@ -516,6 +623,41 @@ class Scenario(_Strict):
             return v
 
         return yaml.safe_dump(plain(self.model_dump(exclude_none=False)), sort_keys=False)
+
+
+VEHICLE_MAX_DT = 0.05
+"""Longest tick (s) with quadrotors and ground robots: at 20 Hz their tracking controllers are
+still stable; at 10 Hz the quadrotor's attitude loop is not."""
+
+
+def reference_params(spec: AgentSpec) -> dict:
+    """The CircleReference (swarmloc/vehicles.py) of a vehicle's `track` motion, as plain values."""
+    m = spec.motion
+    center = [float(v) for v in (m.center if m.center is not None else spec.start)]
+    return {"center": center, "radius": float(m.radius), "period": float(m.period), "phase": float(m.phase),
+            "yaw": m.yaw}
+
+
+VEHICLE_RATE_STD = 1e-3
+"""Prior std of a vehicle's velocities and rates (m/s, rad/s): it starts at rest, and knows it."""
+
+
+def _vehicle_prior(spec: AgentSpec, est: Estimation, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A vehicle at rest at its start: position within initial_std, yaw within initial_heading_std
+    (a quadrotor's quaternion components then within half that), level."""
+    from swarmloc.vehicles import MODELS
+
+    model = MODELS[spec.model]
+    e = rng.standard_normal(4) if est.initial_error else np.zeros(4)
+    x = model.initial_state(np.array(spec.start, float) + est.initial_std * e[:3],
+                            spec.heading + est.initial_heading_std * e[3])
+    std = np.full(model.state_dim, VEHICLE_RATE_STD)
+    std[:3] = est.initial_std
+    if spec.model == "quadrotor":
+        std[3:7] = max(est.initial_heading_std / 2, VEHICLE_RATE_STD)
+    else:
+        std[3] = est.initial_heading_std
+    return x, np.diag(std**2)
 
 
 def recording(path: str):

@@ -30,6 +30,11 @@ _E3 = np.array([0.0, 0.0, 1.0])
 # small rotation helpers
 
 
+def _cross(a, b) -> np.ndarray:
+    # np.cross on two 3-vectors costs ~15 us of axis handling; this is most of a dynamics call.
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
 def skew(a) -> np.ndarray:
     """S(a), with S(a) b = a x b."""
     return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
@@ -57,7 +62,7 @@ def quat_G(q) -> np.ndarray:
 def _d_rot_times(q, a) -> np.ndarray:
     """d (R(q) a) / d q (3x4), eq. 12-13: [4 q0 a + 2 S(q) a | 2 q a^T + 2 (q.a) I - 2 q0 S(a)]."""
     q0, qv = q[0], q[1:4]
-    d0 = 4.0 * q0 * a + 2.0 * np.cross(qv, a)
+    d0 = 4.0 * q0 * a + 2.0 * _cross(qv, a)
     dv = 2.0 * np.outer(qv, a) + 2.0 * (qv @ a) * np.eye(3) - 2.0 * q0 * skew(a)
     return np.column_stack([d0, dv])
 
@@ -65,7 +70,7 @@ def _d_rot_times(q, a) -> np.ndarray:
 def _d_rotT_times(q, a) -> np.ndarray:
     """d (R(q)^T a) / d q (3x4): transposing R flips the sign of every S(q) term."""
     q0, qv = q[0], q[1:4]
-    d0 = 4.0 * q0 * a - 2.0 * np.cross(qv, a)
+    d0 = 4.0 * q0 * a - 2.0 * _cross(qv, a)
     dv = 2.0 * np.outer(qv, a) + 2.0 * (qv @ a) * np.eye(3) + 2.0 * q0 * skew(a)
     return np.column_stack([d0, dv])
 
@@ -224,8 +229,8 @@ class Quadrotor(VehicleModel):
         return np.concatenate([
             R @ v,
             0.5 * quat_G(q) @ w,
-            -np.cross(w, v) - GRAVITY * (R.T @ _E3),
-            -np.cross(w, I * w) / I,
+            -_cross(w, v) - GRAVITY * (R.T @ _E3),
+            -_cross(w, I * w) / I,
         ])
 
     def g(self, x=None):
@@ -524,7 +529,7 @@ class QuadrotorController:
         ref = self.reference.derivatives(t, 4)
         r1 = R @ v
         r2 = R[:, 2] * (f / m) - GRAVITY * _E3
-        r3 = R @ (np.cross(w, _E3) * f + _E3 * fd) / m
+        r3 = R @ (_cross(w, _E3) * f + _E3 * fd) / m
         e0, e1, e2, e3 = r - ref[0], r1 - ref[1], r2 - ref[2], r3 - ref[3]
         self._int_e = np.clip(self._int_e + e0 * dt, -self.int_limit, self.int_limit)
         lam = np.array([self.lam, self.lam, self.lam_z])
@@ -555,7 +560,7 @@ class QuadrotorController:
         wdz = (psidd * D + psid * Dd - wdy * R[2, 1] - wz * R22d - wy * R21d) / r22
 
         wdot = np.array([wdx, wdy, wdz])
-        tau = I * wdot + np.cross(w, I * w)
+        tau = I * wdot + _cross(w, I * w)
         u = np.concatenate([[f], np.clip(tau, -self.tau_max, self.tau_max)])
         if not np.all(np.isfinite(u)) or not math.isfinite(fdd):
             # only an absurd estimate overflows: hold thrust, no moments, freeze f_hat

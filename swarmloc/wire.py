@@ -399,6 +399,9 @@ class Keys:
     def stats(self, aid: int | str) -> str:
         return f"{self.prefix}/agent/{aid}/stats"
 
+    def command(self, aid: int | str) -> str:
+        return f"{self.prefix}/agent/{aid}/command"
+
     def alive(self, aid: int | str) -> str:
         return f"{self.prefix}/agent/{aid}/alive"
 

@@ -58,7 +58,9 @@ _SENSORS = M.Sensors(
     gnss=M.GnssMsg(np.array([1.0, 2.0, 3.0]), 0.5, 0.8), imu=M.ImuMsg(0.01, np.zeros((2, 6))),
     pseudoranges=M.PseudorangesMsg(np.ones((4, 3)) * 2e7, np.full(4, 2e7), 3.0),
     relpos=[M.RelPosMsg(2, np.array([1.0, -2.0, 0.5]), 0.05)], align=M.AlignMsg(np.zeros(16), np.eye(16) * 0.01),
-    targets=[M.TargetRangeMsg(0, 300.0, 10.0)], rb=[_RB], landmarks=[M.RangeBearingMsg(7, 5.0, -1.0, 0.1, 0.05)])
+    targets=[M.TargetRangeMsg(0, 300.0, 10.0)], rb=[_RB], landmarks=[M.RangeBearingMsg(7, 5.0, -1.0, 0.1, 0.05)],
+    vehicle=M.VehicleMsg(0.02, np.array([9.9, 0.0, 0.001, 0.0]), np.array([1.0, 0.0, 0.0, 0.0]), 0.01,
+                         [M.RelPosMsg(2, np.array([1.0, -2.0, 0.5]), 0.005)]))
 _COMMIT = M.DclCommit(3, 0, [1, 0, 2, 0], 5, {1: 4, 2: 3}, np.eye(4), np.ones((4, 1)), np.eye(1), np.zeros(1), {2: 1},
                       {1: np.zeros((2, 1)), 3: np.ones((2, 1))}, [1, 2], [[2, 3]], True, [[1, 0, 3, 0]],
                       {1: np.eye(2)})
@@ -79,7 +81,10 @@ SAMPLES = {
     "target_estimate": M.TargetEstimateMsg(0, np.array([500.0, 0.0]), _EYE2),
     "estimate": M.EstimateMsg(3, "ukf-dcl", np.array([1.0, 2.0]), _EYE2, np.array([[1.2, 1.0]]),
                               [M.TargetEstimateMsg(0, np.array([500.0, 0.0]), _EYE2)]),
-    "done": M.Done(3, 7, 9),
+    "done": M.Done(3, 7, 9, 2),
+    "command": M.Command(3, np.array([9.9, 0.0, 0.001, 0.0])),
+    "vehicle": _SENSORS.vehicle,
+    "veh.pose": M.VehiclePose(3, np.r_[1.0, 2.0, 1.5, 1.0, np.zeros(9)], np.eye(13) * 0.01),
     "beacon": M.Beacon(3, np.array([1.0, 2.0]), _EYE2, {1: 2, 3: 1}),
     "ci.pose": M.PoseBeacon(3, np.array([1.0, 2.0, 0.1]), _EYE3 * 0.1, [_RB]),
     "dcl.start": M.DclStart(3, 0, [1, 0, 2, 0], np.array([10.0]), np.eye(1), np.array([1.0, 2.0]),
@@ -439,6 +444,9 @@ CASES = {
     "ekf-ci/pose": ("ekf-ci", lambda: pose_robots("ekf-ci")),
     "ekf-naive": ("ekf-naive", lambda: S.load("goel-dist").with_overrides(**{"sensors.epoch": 0.2})),
     "ekf-centre": ("ekf-centre", lambda: S.load("goel2node")),
+    "ekf-cl": ("ekf-cl", lambda: S.load("oliveros3").with_overrides(**{"world.control": "agents"})),
+    "ekf-local": ("ekf-local", lambda: S.load("oliveros-caravan-control-1").with_overrides(
+        **{"world.control": "agents", "estimator": {"name": "ekf-local", "params": {}}})),
 }
 TICKS = 6
 MAX_CONTEXTS = 40

@@ -20,6 +20,7 @@ from swarmloc import resolve
 PLANAR = ("planar-speed-heading",)
 POSE = ("planar-pose",)  # heading in the state: F is not the identity (UKF-DCL: core coordinates)
 UAS = ("uas-ins",)
+VEHICLES = ("quadrotor", "ground-robot")  # Oliveros & Ashrafiuon 2023: driven by their actuator commands
 
 
 @dataclass(frozen=True)
@@ -190,6 +191,15 @@ for _info in (
                   "UAS fall back to their own EKF when it is out of reach", UAS + ("ground-station",), "tab:purple",
                   node="swarmloc.estimators.fusion_centre:node_spec",
                   settings_path="swarmloc.estimators.settings:CentreSettings", paper="Goel et al. 2016, section 3"),
+    EstimatorInfo("ekf-cl", "EKF-CL", "quadrotors and ground robots: a fusion-centre process runs the joint EKF of "
+                  "the vehicles over the radio (relative positions in body frames); a vehicle falls back to its own "
+                  "EKF when the answer does not come", VEHICLES + ("ground-station",), "tab:purple",
+                  node="swarmloc.estimators.vehicle_cl:node_spec",
+                  settings_path="swarmloc.estimators.settings:CentreSettings", paper="Oliveros & Ashrafiuon 2023"),
+    EstimatorInfo("ekf-local", "EKF, no CL", "quadrotors and ground robots: each vehicle's own EKF; a relative "
+                  "position is fused against the target's broadcast estimate, correlations ignored", VEHICLES,
+                  "tab:red", node="swarmloc.estimators.vehicle_cl:LocalNode.spec",
+                  paper="Oliveros & Ashrafiuon 2023 (without CL)"),
     EstimatorInfo("ekf-ccl", "EKF-CCL", "centralized EKF over the joint state of the swarm, offline", UAS + POSE,
                   "tab:olive", reference=True, batch="swarmloc.estimators.ekf_ccl:CentralizedEkf.from_scenario",
                   paper="Goel et al. 2016, section 3"),
