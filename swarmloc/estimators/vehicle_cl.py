@@ -336,6 +336,7 @@ class VehicleCentre(Node):
         self.heard: dict[int, int] = {}  # vehicle -> last tick it sent data for
         self.unreachable: set[int] = set()
         self.first: int | None = None
+        self.member_tick: dict[int, int] = {}  # member -> last tick run with its data
         self.ran = -1  # last tick run (or skipped)
         self.stats = {"ticks_run": 0, "late": 0, "no_state": 0, "joined": 0, "left": 0, "numerical": 0,
                       "relpos_updates": 0, "timer_runs": 0}
@@ -394,8 +395,10 @@ class VehicleCentre(Node):
     def _run(self, k: int) -> list[Send]:
         data = self.data.pop(k, {})
         self.ran = max(self.ran, k)
-        for a in [a for a in self.joint.members if a not in data]:
-            self.joint.remove(a)  # without its command it cannot be propagated
+        # A member stays only if the centre ran the previous tick with its data: without its
+        # command it cannot be propagated, and an older state cannot be propagated by one tick.
+        for a in [a for a in self.joint.members if a not in data or self.member_tick.get(a) != k - 1]:
+            self.joint.remove(a)
             self.stats["left"] += 1
         before = copy.deepcopy(self.joint)
         try:
@@ -409,6 +412,8 @@ class VehicleCentre(Node):
             self.drop("numerical", f"tick {k}: {exc}")
             return []
         self.stats["ticks_run"] += 1
+        for a in self.joint.members:
+            self.member_tick[a] = k
         out = []
         for a in self.joint.members:
             x, P = self.joint.marginal(a)
