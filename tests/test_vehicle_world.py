@@ -155,3 +155,37 @@ def test_scenario_errors_name_the_field(override, match):
 def test_control_by_agents_needs_vehicles():
     with pytest.raises((ScenarioError, ValueError), match="needs quadrotor or ground-robot"):
         scenario.load("wang2019").with_overrides(**{"world.control": "agents"})
+
+
+def test_netsim_takes_an_agents_commands_and_counts_what_it_refuses():
+    """netsim's door for `agent/<id>/command` (no Zenoh needed): a command counts by its number
+    even when its body is malformed (lockstep must not wait for it; the vehicle keeps its last
+    command); repeats, strangers and agents not joined are refused and counted."""
+    import msgpack
+
+    from netsim.server import NetsimServer, ServerConfig
+    from swarmloc import wire
+    from swarmloc.messages import Command, Done
+
+    sc = _short("oliveros3", 1.0, **{"world.control": "agents"})
+    server = NetsimServer(sc, ServerConfig())
+    key = server.keys.command(1)
+    good = wire.encode(Command(0, MODELS["quadrotor"].hover_input() + 1.0), 1, 1)
+    server._on_command(key, good)
+    assert server.rejected["command"] == {"not-joined": 1} and server.commands[1] == 0
+    server.alive.update(sc.agent_ids)
+    server._on_command(key, good)
+    server._on_command(key, good)  # the same number again
+    tree = msgpack.unpackb(wire.encode(Command(0, np.zeros(4)), 1, 2), raw=False)
+    tree["body"]["u"] = "thrust"
+    server._on_command(key, msgpack.packb(tree, use_bin_type=True))
+    server._on_command(server.keys.command(99), good)
+    server._on_command(key, wire.encode(Command(0, np.zeros(4)), 2, 3))  # on 1's key, from 2
+    assert server.commands[1] == 2
+    assert dict(server.rejected["command"]) == {"not-joined": 1, "stale": 1, "unknown-agent": 1, "src-mismatch": 1}
+    assert server.sim.commands["received"] == {"applied": 1, "malformed": 1}
+    # Lockstep's quiet condition: a `done` that says 3 commands waits for the third.
+    server.done[1] = Done(0, 0, 0, 3)
+    assert not server._quiet_agent(1, 0)
+    server._on_command(key, wire.encode(Command(0, np.zeros(4)), 1, 3))
+    assert server._quiet_agent(1, 0)
