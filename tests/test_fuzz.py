@@ -445,6 +445,8 @@ CASES = {
     "ekf-naive": ("ekf-naive", lambda: S.load("goel-dist").with_overrides(**{"sensors.epoch": 0.2})),
     "ekf-centre": ("ekf-centre", lambda: S.load("goel2node")),
     "ekf-cl": ("ekf-cl", lambda: S.load("oliveros3").with_overrides(**{"world.control": "agents"})),
+    "ekf-ci/vehicles": ("ekf-ci", lambda: S.load("oliveros-caravan-2").with_overrides(
+        **{"estimator": {"name": "ekf-ci", "params": {}}})),
     "ekf-local": ("ekf-local", lambda: S.load("oliveros-caravan-control-1").with_overrides(
         **{"world.control": "agents", "estimator": {"name": "ekf-local", "params": {}}})),
 }

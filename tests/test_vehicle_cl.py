@@ -117,3 +117,23 @@ def test_ekf_local_fuses_against_the_tick_poses_and_counts_what_never_came():
                                                          "probability": 1.0}]})
     _, nodes, _ = in_process(sc, "ekf-local")
     assert 45 <= nodes[3].stats["no_anchor"] <= 51, nodes[3].stats
+
+
+def test_ci_stays_consistent_where_fusing_as_if_independent_does_not():
+    """Side by side on the same caravan (vehicle 4 with GPS): fusing a target's estimate as if
+    it were independent of one's own (ekf-local) makes the chain's vehicles overconfident by
+    orders of magnitude; covariance intersection (ekf-ci on vehicles) keeps the NEES of every
+    robot at or below its dimension."""
+    from swarmloc.results import metrics
+
+    nees = {}
+    for est in ("ekf-local", "ekf-ci"):
+        sc = short("oliveros-caravan-2", 2.0, **{"estimator": {"name": est, "params": {}}})
+        record, nodes, _ = in_process(sc, est)
+        agents = metrics(record, [est])["estimators"][est]["agents"]
+        nees[est] = {a: agents[str(a)]["nees"]["mean"] for a in record.ids}
+        if est == "ekf-ci":
+            assert type(nodes[1]).__name__ == "CiVehicleNode" and nodes[1].stats["relpos_updates"] > 0
+    robots = (1, 2, 3, 5, 6, 7)
+    assert max(nees["ekf-local"][a] for a in (1, 5)) > 100, nees
+    assert all(nees["ekf-ci"][a] < 7 * 1.5 for a in robots), nees

@@ -181,7 +181,7 @@ for _info in (
                   node="swarmloc.estimators.ekf:EkfNode.spec", reference=True,
                   paper="Goel et al. 2016 (no sharing)"),
     EstimatorInfo("ekf-ci", "EKF-CI", "each platform's EKF fuses its neighbours' estimates through relative "
-                  "measurements with covariance intersection", UAS + POSE, "tab:green",
+                  "measurements with covariance intersection", UAS + POSE + VEHICLES, "tab:green",
                   node="swarmloc.estimators.ekf_ci:CiNode.spec",
                   settings_path="swarmloc.estimators.settings:CiSettings", paper="Goel et al. 2016, section 4"),
     EstimatorInfo("ekf-naive", "EKF naive", "as EKF-CI, but neighbours' estimates are fused as if independent",

@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from swarmloc import fusion, ins
+from swarmloc import fusion, ins, resolve
 from swarmloc.estimators.ekf import DIM, LAYOUT, EkfNode, RejectedInput, checked, checked_covariance, checked_std
 from swarmloc.measurements import RelativePosition, StateLayout
 from swarmloc.messages import Beacon
@@ -86,6 +86,8 @@ def release_held(node) -> list:
 class CiNode(EkfNode):
     algorithm = "ekf-ci"
     pose_node = "swarmloc.estimators.pose_ekf:PoseCiNode"
+    # On quadrotors and ground robots (swarmloc/estimators/vehicle_cl.py); None: not there.
+    vehicle_node: str | None = "swarmloc.estimators.vehicle_cl:CiVehicleNode"
 
     def __init__(self, aid, x0, P0, imu: ins.ImuSpec = ins.ImuSpec(), clock: ins.ClockSpec = ins.ClockSpec(),
                  criterion: str = "trace"):
@@ -101,6 +103,12 @@ class CiNode(EkfNode):
 
     @classmethod
     def spec(cls, scenario, aid, settings=None) -> NodeSpec:
+        from swarmloc.models import VEHICLES
+
+        if scenario.agent(aid).model in VEHICLES and cls.vehicle_node is not None:
+            from swarmloc.estimators.vehicle_cl import vehicle_spec
+
+            return vehicle_spec(resolve(cls.vehicle_node), scenario, aid)
         return super().spec(scenario, aid).with_(criterion=getattr(settings, "criterion", "trace"))
 
     def resume(self, k, x, P) -> None:
@@ -215,6 +223,7 @@ class NaiveNode(CiNode):
 
     algorithm = "ekf-naive"
     pose_node = None
+    vehicle_node = None
 
     def fuse(self, dz, Pz):
         dx, P = fusion.naive_fusion(np.zeros(DIM), self.filter.P, dz, Pz, H_POSITION)

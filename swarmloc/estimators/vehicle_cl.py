@@ -214,6 +214,7 @@ class LocalNode(VehicleNode):
     estimates of the tick (module docstring)."""
 
     algorithm = "ekf-local"
+    ci = False  # CiVehicleNode: fuse by covariance intersection instead
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
@@ -245,12 +246,25 @@ class LocalNode(VehicleNode):
             return self.drop(exc.reason, exc.detail)
         for r in [r for r in self.pending if r.target == src]:
             self.pending.remove(r)
-            nis = self._guard("relpos", self.filter.update_relpos_anchor, r.z, r.std, model, xt, Pt)
+            if self.ci:
+                got = self._guard("relpos", self.filter.update_relpos_ci, r.z, r.std, model, xt, Pt)
+                nis = None if got is None or got[1] >= 1.0 else got[0]
+            else:
+                nis = self._guard("relpos", self.filter.update_relpos_anchor, r.z, r.std, model, xt, Pt)
             if nis is not None:
                 self.nis.append((nis, 3))
                 self.stats["relpos_updates"] += 1
         self._sync()
         return []
+
+
+class CiVehicleNode(LocalNode):
+    """``ekf-ci`` on quadrotors and ground robots: as ``ekf-local``, but a relative position is
+    fused against the target's pose by covariance intersection (VehicleEkf.update_relpos_ci),
+    which stays consistent whatever the two estimates share."""
+
+    algorithm = "ekf-ci"
+    ci = True
 
 
 # ------------------------------------------------------------------------ ekf-cl (fusion centre)

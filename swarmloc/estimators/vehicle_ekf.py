@@ -300,6 +300,39 @@ class VehicleEkf:
         return self._apply(np.asarray(Hb, dtype=float), e, R)
 
 
+    def update_relpos_ci(self, z, std, target_model: VehicleModel, xt, Pt) -> tuple[float, float]:
+        """As update_relpos_anchor, but fused by covariance intersection: the target's estimate
+        may be correlated with this one in any way (each may already hold the other's earlier
+        estimates), so the update is made with both covariances inflated, P / w and
+        (R + H_t Pt H_t^T) / (1 - w) (swarmloc.fusion.ci_partial's form, linearised at x), which
+        bounds every cross-covariance; w minimises the trace of the position block of P+.
+        Returns (NIS at the chosen w, w); w = 1 is no update."""
+        from swarmloc.fusion import _best_omega
+
+        z = _vector(z, 3, "relpos z")
+        s = _stds(std, 3, "relpos std")
+        xt = _vector(xt, target_model.state_dim, f"{target_model.name} target xt")
+        Pt = _matrix(Pt, target_model.state_dim, f"{target_model.name} target Pt")
+        Hb, Ht = relpos_jacobian(self.model, self.x, target_model, xt)
+        Hb = np.asarray(Hb, dtype=float)
+        R = np.diag(s * s) + Ht @ Pt @ Ht.T
+        e = z - relpos(self.model, self.x, target_model, xt)
+
+        def fuse(w: float):
+            return _kalman_update(self.x, self.P / w, Hb, e, R / (1.0 - w))
+
+        def cost(w: float) -> float:
+            if w <= 0.0:
+                return math.inf  # H sees 3 of n states: w = 0 would discard the rest of the prior
+            return float(np.trace(self.P[:3, :3])) if w >= 1.0 else float(np.trace(fuse(w)[1][:3, :3]))
+
+        w = _best_omega(cost)
+        if w >= 1.0:
+            return 0.0, 1.0
+        x, P, nis = fuse(w)
+        self.x, self.P = self._normalised(x, P)
+        return nis, w
+
 # ---------------------------------------------------------------------------------------------
 # the centralized joint filter
 
