@@ -780,6 +780,14 @@ def clear(fault_id: int = typer.Argument(..., help="fault id from `swarmloc faul
 
 
 @app.command()
+def stop(swarm: str = SwarmOpt, connect: Optional[list[str]] = ConnectOpt):
+    """End a running swarm after its current tick; the run directory is written as at a normal end."""
+    with ControlClient(swarm, connect) as ctl:
+        data = ctl.request("stop")
+    typer.echo(f"stopping after tick {data['k']} of {data['steps']} (t = {data['t']:.1f} s)")
+
+
+@app.command()
 def faults(swarm: str = SwarmOpt, connect: Optional[list[str]] = ConnectOpt,
            as_json: bool = typer.Option(False, "--json", help="print the faults in force as JSON")):
     """List the faults in force in a running swarm."""

@@ -100,6 +100,7 @@ class NetsimServer:
         self.hop_latency: list[float] = []  # wall s from tx arrival at netsim to rx publish
         self.t0 = 0.0
         self.finished = False  # the last tick is over: agents leaving now are not events
+        self.stop_requested: int | None = None  # `swarmloc stop`: the tick at which it was asked
         self.awaited: set[int] = set()  # agents lockstep waits for before its next tick
         ring = cfg.keyring
         self.sealer = auth.Sealer(ring, NETSIM_ID) if ring is not None else None
@@ -369,7 +370,11 @@ class NetsimServer:
             return reply(True, "", {"k": self.sim.k, "t": self.sim.t, "active": self.sim.faults.describe()})
         if req.op == "status":
             return reply(True, "", self.status())
-        return reply(False, f"unknown op {req.op!r} (inject, clear, faults, status)")
+        if req.op == "stop":
+            # The run ends after the tick in progress, as it would at its last tick.
+            self.stop_requested = self.sim.k
+            return reply(True, "", {"k": self.sim.k, "t": self.sim.t, "steps": self.sim.steps})
+        return reply(False, f"unknown op {req.op!r} (inject, clear, faults, status, stop)")
 
     def status(self) -> dict:
         return {
@@ -425,6 +430,9 @@ class NetsimServer:
             self.wait_for_agents()
             self.t0 = time.perf_counter()
             for _ in range(self.sim.steps + 1):
+                if self.stop_requested is not None:
+                    log.warning("stopped on request after tick %d of %d", self.sim.k, self.sim.steps)
+                    break
                 if self.mode == "lockstep":
                     self._lockstep_tick()
                 else:
@@ -561,7 +569,8 @@ class NetsimServer:
         extra = {
             "transport": f"zenoh-{self.mode}",
             "wall_time_s": wall,
-            "ticks_per_s": (self.sim.steps + 1) / wall if wall > 0 else None,
+            "ticks_per_s": (self.sim.k + 1) / wall if wall > 0 else None,
+            **({"stopped_at_tick": self.sim.k} if self.stop_requested is not None else {}),
             "radio": {"model": self.sc.radio["model"], **self.sim.radio_summary(),
                       "netsim_hop_us_median": float(np.median(lat)) if lat.size else None,
                       "netsim_hop_us_p99": float(np.percentile(lat, 99)) if lat.size else None},

@@ -103,12 +103,17 @@ def test_every_fault_kind_live(cli, tmp_path):
         assert p.returncode != 0 and "unknown agents" in p.stderr
         p = cli.control("inject", "loss", "1.5")
         assert p.returncode != 0 and "probability" in p.stderr
+
+        # Everything is checked: end the run now rather than at its 160 s.
+        p = cli.control("stop")
+        assert p.returncode == 0 and "stopping after tick" in p.stdout, p.stderr
     finally:
         ns.close()
     stdout, stderr = run.communicate(timeout=300)
     assert run.returncode == 0, stderr
 
     m = json.loads((out / "metrics.json").read_text())
+    assert 0 < m["stopped_at_tick"] < 320 and m["ticks"] == m["stopped_at_tick"] + 1
     applied = [(f["action"], f["source"]) for f in m["faults"]]
     for action in ("radio-off", "partition", "heal", "loss", "clear-loss", "jammer", "cut", "gnss-off"):
         assert (action, "live") in applied, applied
