@@ -86,3 +86,25 @@ def test_a_command_stream_lost_live_keeps_the_last_command(cli, tmp_path):
     assert np.linalg.norm(truth["state"][-1, 1, :3] - want) < 0.2
     est = load_npz(out / "estimates" / "ekf-cl.npz")
     assert np.isfinite(est["mean"][1:, :, :3]).all()
+
+
+def test_the_caravan_of_quadrotors_in_closed_loop_equals_in_process(cli, tmp_path):
+    """The largest vehicle swarm we ship: eight quadrotors in closed loop and the fusion centre
+    (a 104-state joint filter), with a chain link cut and a lost command stream."""
+    faults = [{"at": 0.3, "action": "cut", "link": [3, 4], "duration": 0.3},
+              {"at": 0.5, "action": "command-off", "node": 5, "duration": 0.2}]
+    sc = S.load("oliveros-caravan-control-1").with_overrides(**{"clock.duration": 1.0, "faults": faults})
+    path = tmp_path / "caravan.yaml"
+    path.write_text(sc.to_yaml())
+    out = tmp_path / "run"
+    cli.run("run", str(path), "--out", str(out), "--port", str(cli.port), "--swarm", cli.swarm, "--no-plots",
+            check=True, timeout=300)
+    record, _, sim = in_process(sc, "ekf-cl")
+    zen = load_npz(out / "estimates" / "ekf-cl.npz")
+    ref = record.trace("ekf-cl")
+    assert zen["mean"].shape == ref.mean.shape == (51, 8, 13)
+    assert np.array_equal(zen["mean"], ref.mean) and np.array_equal(zen["cov"], ref.cov)
+    assert np.array_equal(load_npz(out / "truth.npz")["state"], record.truth_array())
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["commands"]["held_ticks"] == sim.commands["held_ticks"]
+    assert m["commands"]["held_ticks"]["5"] == 10 and sum(m["commands"]["held_ticks"].values()) == 10
