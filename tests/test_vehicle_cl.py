@@ -12,7 +12,7 @@ import pytest
 from helpers import in_process
 from swarmloc import scenario as S
 from swarmloc.estimators.vehicle_ekf import JointVehicleEkf, VehicleEkf
-from swarmloc.estimators.vehicle_cl import LocalNode, VehicleClient
+from swarmloc.estimators.vehicle_cl import LocalNode
 from swarmloc.results import position_errors
 from swarmloc.vehicles import MODELS
 

@@ -1,7 +1,7 @@
 """Cooperative localization of quadrotors and ground robots in closed loop (Oliveros &
 Ashrafiuon 2023), as radio roles.
 
-Two estimators, both on the vehicle filters of swarmloc/estimators/vehicle_ekf.py:
+Three estimators, all on the vehicle filters of swarmloc/estimators/vehicle_ekf.py:
 
 * ``ekf-cl``, the paper's centralized EKF (section 5) in the fusion-centre role. Every vehicle
   runs a `VehicleClient`: its own EKF (propagation with the command in force, IMU orientation,
@@ -11,13 +11,15 @@ Two estimators, both on the vehicle filters of swarmloc/estimators/vehicle_ekf.p
   sizes (propagation eq. 44, the relative positions of section 4 with their cross-covariances,
   eqs. 45-47), and unicasts each member its marginal (`fc.estimate`). Membership follows
   swarmloc/estimators/fusion_centre.py: a vehicle is taken in from its own x, P, uncorrelated; a
-  member without data for a tick leaves (marginalised); the centre runs a tick when every
+  member leaves (marginalised) unless the previous tick ran with its data; the centre runs a tick when every
   expected vehicle's data came, on a later tick's datum, or on its timer.
 * ``ekf-local``, cooperative localization without CL (the paper's "without CL" runs): each vehicle
   alone, and a relative position measured to a target is fused against the target's own estimate
   of the tick, which every vehicle broadcasts (`veh.pose`) after its own sensors and before any
   relative measurement of the tick; the target's covariance enters the innovation, the
   correlation between the two estimates is ignored.
+* ``ekf-ci`` on vehicles (`CiVehicleNode`): the same exchange, each relative position fused by
+  covariance intersection instead, consistent whatever the two estimates share.
 
 Closed loop (`world.control: agents`): every vehicle node holds the controller of
 swarmloc/vehicles.py and `command()` gives the command from its current estimate. Asked again in
