@@ -137,3 +137,18 @@ def test_ci_stays_consistent_where_fusing_as_if_independent_does_not():
     robots = (1, 2, 3, 5, 6, 7)
     assert max(nees["ekf-local"][a] for a in (1, 5)) > 100, nees
     assert all(nees["ekf-ci"][a] < 7 * 1.5 for a in robots), nees
+
+
+def test_ci_on_vehicles_keeps_the_states_it_does_not_see_bounded():
+    """Every CI fusion inflates the states a relative position does not see by 1 / w; over a
+    caravan without GPS (case 1), 50 fusions per vehicle per second, no covariance entry grows
+    beyond what the vehicles' own drift explains, and the NEES stays at or below the state
+    dimension."""
+    from swarmloc.results import metrics
+
+    sc = short("oliveros-caravan-1", 3.0, **{"estimator": {"name": "ekf-ci", "params": {}}})
+    record, nodes, _ = in_process(sc, "ekf-ci")
+    cov = record.trace("ekf-ci").cov
+    assert np.nanmax(np.abs(cov)) < 0.1, np.nanmax(np.abs(cov))
+    agents = metrics(record, ["ekf-ci"])["estimators"]["ekf-ci"]["agents"]
+    assert all(agents[str(a)]["nees"]["mean"] < 1.5 * record.models[a].state_dim for a in record.ids), agents

@@ -249,7 +249,7 @@ class LocalNode(VehicleNode):
         for r in [r for r in self.pending if r.target == src]:
             self.pending.remove(r)
             if self.ci:
-                got = self._guard("relpos", self.filter.update_relpos_ci, r.z, r.std, model, xt, Pt)
+                got = self._guard("relpos", self.filter.update_relpos_ci, r.z, r.std, model, xt, Pt, self.criterion)
                 nis = None if got is None or got[1] >= 1.0 else got[0]
             else:
                 nis = self._guard("relpos", self.filter.update_relpos_anchor, r.z, r.std, model, xt, Pt)
@@ -267,6 +267,12 @@ class CiVehicleNode(LocalNode):
 
     algorithm = "ekf-ci"
     ci = True
+
+    def __init__(self, *args, criterion: str = "det", **kwargs):
+        super().__init__(*args, **kwargs)
+        if criterion not in ("trace", "det"):
+            raise ValueError(f"criterion {criterion!r}: trace or det")
+        self.criterion = criterion
 
 
 # ------------------------------------------------------------------------ ekf-cl (fusion centre)
