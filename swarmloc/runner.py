@@ -92,7 +92,8 @@ class InProcessRunner:
         codec, to the world: netsim applies the last command an agent published before its
         final `done` of the tick, which is this one."""
         for a in sorted(self.nodes):
-            cmd = self.nodes[a].command()
+            ask = getattr(self.nodes[a], "command", None)  # a stand-in (a dead agent) is no Node
+            cmd = ask() if ask is not None else None
             if cmd is not None:
                 self.env.command(a, wire.decode(wire.encode(cmd, a, 1)).body.u)
 

@@ -87,7 +87,7 @@ def test_a_config_builds_its_estimators_node(estimator, changes, node_class):
     (changed(estimator={"name": "ukf-ccl"}), "estimator.name: unknown estimator 'ukf-ccl'"),
     (changed(estimator={"name": "csl-ctl"}), "estimator.name: csl-ctl needs every agent's prior"),
     (changed(estimator={"name": "ukf-dcl", "params": {"max_chain": 1}}), "estimator.params: max_chain:"),
-    (changed(estimator={"name": "ekf-ci"}), "model: estimator ekf-ci runs on uas-ins, planar-pose, not "
+    (changed(estimator={"name": "ekf-ci"}), "model: estimator ekf-ci runs on uas-ins, planar-pose, quadrotor, ground-robot, not "
                                             "planar-speed-heading"),
     (changed(model="hovercraft"), "model: unknown model 'hovercraft'"),
     (changed(prior={"position": [1, 2, 3]}), "prior.position: 3 numbers; model planar-speed-heading needs 2"),

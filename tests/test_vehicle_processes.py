@@ -60,8 +60,8 @@ def test_closed_loop_over_zenoh_equals_in_process(cli, tmp_path):
 def test_a_command_stream_lost_live_keeps_the_last_command(cli, tmp_path):
     """Real time, closed loop: `swarmloc inject command-off 2 --for 1` while the swarm flies.
     Vehicle 2 flies about 1 s (50 ticks) on its last command, counted; then it is commanded
-    again and back on its circle; nobody else is affected."""
-    sc = S.load("oliveros3").with_overrides(**{"clock.duration": 6.0, "clock.mode": "realtime", "clock.speed": 0.5,
+    again and, after a few seconds, back on its circle; nobody else is affected."""
+    sc = S.load("oliveros3").with_overrides(**{"clock.duration": 9.0, "clock.mode": "realtime", "clock.speed": 0.5,
                                                "world.control": "agents"})
     path = tmp_path / "live.yaml"
     path.write_text(sc.to_yaml())
