@@ -25,6 +25,7 @@ from collections import Counter
 
 import numpy as np
 
+from swarmloc.estimators.vehicle_ekf import actuator_std
 from swarmloc.messages import GnssMsg, RelPosMsg, VehicleMsg
 from swarmloc.scenario import reference_params
 from swarmloc.vehicles import MODELS, CircleReference, controller_for, relpos
@@ -44,11 +45,6 @@ def reference_of(spec) -> CircleReference:
     return CircleReference(**reference_params(spec))
 
 
-def actuator_std(model, cfg) -> np.ndarray:
-    """Std of the noise on each input: a force first, then moments."""
-    return np.r_[cfg.force_noise, np.full(model.input_dim - 1, cfg.moment_noise)]
-
-
 class VehicleFleet:
     def __init__(self, scenario, ids: list[int], seed: int):
         self.sc = scenario
@@ -63,7 +59,7 @@ class VehicleFleet:
                           if scenario.world.control == "netsim" else {})
         self.u = {a: self.model[a].hover_input(self.x[a]) for a in self.ids}  # the command in force
         self.rng = {(p, a): stream(seed, p, a) for p in PURPOSES for a in self.ids}
-        self.noise = {a: actuator_std(self.model[a], self.cfg) for a in self.ids}
+        self.noise = {a: actuator_std(self.model[a], self.cfg.force_noise, self.cfg.moment_noise) for a in self.ids}
         graph = self.cfg.graph if self.cfg.graph is not None else [(b, t) for b in self.ids for t in self.ids if b != t]
         self.graph = sorted((int(b), int(t)) for b, t in graph)
         self.commands: Counter[str] = Counter()  # commands received: applied, or refused by reason

@@ -37,29 +37,13 @@ import math
 
 import numpy as np
 
-from swarmloc.estimators.ekf import RejectedInput, checked, checked_covariance, checked_std
-from swarmloc.estimators.fusion_centre import MAX_ABS, MIN_STD, RUN, centre_id
-from swarmloc.estimators.vehicle_ekf import JointVehicleEkf, VehicleEkf
+from swarmloc.estimators.ekf import RejectedInput, checked, checked_covariance
+from swarmloc.estimators.fusion_centre import GROUND_STATION, RUN, _bounded, _std, centre_id
+from swarmloc.estimators.vehicle_ekf import JointVehicleEkf, VehicleEkf, actuator_std
 from swarmloc.messages import CentreData, CentreEstimate, Command, Sensors, VehiclePose
 from swarmloc.models import VEHICLES
 from swarmloc.node import Idle, Node, NodeSpec, Send, Timer
 from swarmloc.vehicles import MODELS, CircleReference, controller_for
-
-GROUND_STATION = "ground-station"
-
-
-def _bounded(a: np.ndarray, what: str) -> np.ndarray:
-    if a.size and float(np.abs(a).max()) > MAX_ABS:
-        raise RejectedInput("implausible", f"{what}: magnitude beyond {MAX_ABS:g}")
-    return a
-
-
-def _std(v, what: str) -> float:
-    v = checked_std(v, what)
-    if not MIN_STD <= v <= MAX_ABS:
-        raise RejectedInput("implausible", f"{what} = {v:g} outside [{MIN_STD:g}, {MAX_ABS:g}]")
-    return v
-
 
 def check_frame(s: Sensors, model, models: dict[int, object]) -> None:
     """Everything of a vehicle's frame a filter reads, checked (RejectedInput otherwise):
@@ -202,7 +186,7 @@ def vehicle_spec(cls, scenario, aid: int, **extra) -> NodeSpec:
     x0, P0 = scenario.prior(aid)
     cfg = scenario.sensors.vehicle
     dyn = MODELS[spec.model]
-    noise = [cfg.force_noise] + [cfg.moment_noise] * (dyn.input_dim - 1)
+    noise = actuator_std(dyn, cfg.force_noise, cfg.moment_noise)
     reference = CircleReference(**reference_params(spec)) if scenario.world.control == "agents" else None
     return NodeSpec.of(cls, aid=aid, x0=x0, P0=P0, model=spec.model, actuator_std=noise, roster=roster_of(scenario),
                        reference=reference, dt=scenario.clock.dt, **extra)
@@ -350,8 +334,7 @@ class VehicleCentre(Node):
     def __init__(self, aid, roster, actuator_noise, wait: float = 0.05, forget_after: int = 20):
         super().__init__(aid, np.zeros(0), np.zeros((0, 0)), GROUND_STATION)
         self.models = {int(a): MODELS[m] for a, m in roster}
-        force, moment = (float(v) for v in actuator_noise)
-        self.noise = {a: np.r_[force, np.full(m.input_dim - 1, moment)] for a, m in self.models.items()}
+        self.noise = {a: actuator_std(m, *actuator_noise) for a, m in self.models.items()}
         self.wait, self.forget_after = float(wait), int(forget_after)
         self.joint = JointVehicleEkf()
         self.data: dict[int, dict[int, CentreData]] = {}  # tick -> vehicle -> its datum

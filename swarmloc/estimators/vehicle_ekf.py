@@ -49,6 +49,7 @@ import math
 
 import numpy as np
 
+from swarmloc.estimators.ekf import checked
 from swarmloc.vehicles import VehicleModel, relpos, relpos_jacobian
 
 # Added to the process noise on every predict with dt > 0 (state units squared, per tick).
@@ -64,21 +65,11 @@ Q_FLOOR = 1e-10
 
 
 def _vector(a, n: int, what: str) -> np.ndarray:
-    a = np.asarray(a, dtype=float)
-    if a.shape != (n,):
-        raise ValueError(f"{what}: expected shape ({n},), got {a.shape}")
-    if not np.isfinite(a).all():
-        raise ValueError(f"{what}: non-finite values")
-    return a
+    return checked(a, (n,), what)
 
 
 def _matrix(a, n: int, what: str) -> np.ndarray:
-    a = np.asarray(a, dtype=float)
-    if a.shape != (n, n):
-        raise ValueError(f"{what}: expected shape ({n}, {n}), got {a.shape}")
-    if not np.isfinite(a).all():
-        raise ValueError(f"{what}: non-finite values")
-    return a
+    return checked(a, (n, n), what)
 
 
 def _stds(std, m: int, what: str) -> np.ndarray:
@@ -116,6 +107,12 @@ def _wrap(a: float) -> float:
 
 # ---------------------------------------------------------------------------------------------
 # shared maths
+
+
+def actuator_std(model: VehicleModel, force: float, moment: float) -> np.ndarray:
+    """The std of the world's noise on each of a vehicle's inputs: the force (thrust or surge)
+    first, then the moments (scenario `sensors.vehicle.force_noise`, `moment_noise`)."""
+    return np.r_[float(force), np.full(model.input_dim - 1, float(moment))]
 
 
 def process_noise(model: VehicleModel, x, dt, actuator_std) -> np.ndarray:
