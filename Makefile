@@ -3,7 +3,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench clean
+.PHONY: demo test test-all bench clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -16,7 +16,12 @@ $(STAMP): $(BIN)/python pyproject.toml
 demo: $(STAMP)
 	$(BIN)/swarmloc demo
 
+# The fast tier: everything not marked slow, fuzzing at a twentieth of its size (minutes).
 test: $(STAMP)
+	SWARMLOC_FUZZ_SCALE=0.05 $(BIN)/python -m pytest -q -m "not slow"
+
+# Everything, fuzzing at full size: what CI runs.
+test-all: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP)

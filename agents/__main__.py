@@ -1,4 +1,4 @@
-from swarmloc import pin_blas
+from swarmloc.process import pin_blas
 
 pin_blas()  # before numpy loads
 

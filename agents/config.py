@@ -8,22 +8,39 @@ error names its field.
 
 from __future__ import annotations
 
+import math
 import re
 from pathlib import Path
 from typing import Annotated, Literal, Union
 
 import numpy as np
 import yaml
-from pydantic import (BaseModel, ConfigDict, Field, FiniteFloat, ValidationError, ValidationInfo, field_validator,
-                      model_validator)
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    FiniteFloat,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from agents.control import DEFAULT_ENDPOINT, ENDPOINT
 from agents.daemon import AgentConfig
 from swarmloc import wire
+from swarmloc.errors import readable, schema_fields, yaml_type
 from swarmloc.estimators import REGISTRY
-from swarmloc.models import MOTION_MODELS
+from swarmloc.experiment.scenario import (
+    SCENARIO_VERSION,
+    VEHICLE_MAX_DT,
+    Estimation,
+    LandmarkSpec,
+    ScenarioError,
+    parse,
+)
+from swarmloc.models.motion import MOTION_MODELS, VEHICLES
 from swarmloc.node import NodeSpec
-from swarmloc.scenario import SCENARIO_VERSION, Estimation, LandmarkSpec, ScenarioError, parse
 
 CONFIG_VERSION = 1
 
@@ -86,21 +103,33 @@ class Prior(_Strict):
     position: list[FiniteFloat] = Field(description="known start position (m): 2 numbers (x, y) for a planar model, "
                                         "3 (east, north, up) for uas-ins")
     heading: FiniteFloat | None = Field(None, description="planar-pose: known start heading (rad, counter-clockwise "
-                                        "from x); required there, refused for other models")
+                                        "from x), required there; quadrotor, ground-robot: the start yaw (default 0); "
+                                        "refused for other models")
     std: float = Field(0.1, gt=0, allow_inf_nan=False, description="std of each coordinate of the start position (m)")
-    heading_std: float = Field(1e-3, gt=0, allow_inf_nan=False, description="planar-pose: std of the start heading "
-                               "(rad)")
+    heading_std: float = Field(1e-3, gt=0, allow_inf_nan=False, description="planar-pose, quadrotor, ground-robot: "
+                               "std of the start heading (rad)")
 
 
 class ZenohSession(_Strict):
     mode: Literal["peer", "client"] = Field("peer", description="peer: one of the swarm's mesh; client: of a Zenoh "
                                             "router")
     listen: list[str] = Field(default_factory=list, description=f"endpoints to listen on, like {DEFAULT_ENDPOINT}")
-    connect: list[str] = Field(default_factory=list, description="endpoints to connect to (peers or a router)")
+    connect: list[str] = Field(default_factory=list, description=f"endpoints to connect to (peers or a router); "
+                               f"default: [{DEFAULT_ENDPOINT}], or none for a peer that listens (the rule of --connect)")
     gossip: bool = Field(False, description="peer: also dial the peers that the connected ones know of (Zenoh "
                          "gossip). Off: two peers that dial each other can be left in a split session by a link "
                          "outage close to Zenoh's lease (docs/deploy.md#peers-and-routers); each pair of peers "
                          "must then be joined by one side's connect")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _default_connect(cls, data):
+        # As `swarmloc agent` without --connect: the local router (or netsim) on the default
+        # port, unless the agent is a peer that others dial.
+        if isinstance(data, dict) and "connect" not in data:
+            listens = data.get("mode", "peer") == "peer" and data.get("listen")
+            data = {**data, "connect": [] if listens else [DEFAULT_ENDPOINT]}
+        return data
 
     @field_validator("listen", "connect")
     @classmethod
@@ -152,6 +181,9 @@ class MavlinkSource(_Strict):
                                "heading (rad)")
     turn_rate_std: float = Field(0.01, gt=0, allow_inf_nan=False, description="planar-pose: std of its yaw rate "
                                  "(rad/s)")
+    attitude_std: float = Field(0.01, gt=0, allow_inf_nan=False, description="quadrotor, ground-robot: std of each "
+                                "component of the attitude the flight controller reports (quaternion components, or "
+                                "the yaw in rad)")
     origin: list[FiniteFloat] | None = Field(None, min_length=3, max_length=3, description="GNSS fixes are ENU "
                                              "metres from this [lat, lon, alt MSL] (the swarm frame's origin); null: "
                                              "the first 3D fix")
@@ -171,8 +203,18 @@ class FileSource(_Strict):
     kind: Literal["file"]
     path: Path = Field(description="recorded sensor frames to play back (a run directory's sensors.npz), relative "
                        "to this file's directory")
-    speed: Annotated[float, Field(gt=0, allow_inf_nan=False)] | Literal["as_fast_as_possible"] = Field(
-        1.0, description="recorded seconds per wall second, or as_fast_as_possible")
+    speed: float | Literal["as_fast_as_possible"] = Field(1.0, description="recorded seconds per wall second, or "
+                                                          "as_fast_as_possible")
+
+    @field_validator("speed", mode="before")
+    @classmethod
+    def _speed(cls, v):
+        # One rule and one message, not one per member of the union.
+        if v == "as_fast_as_possible" or (isinstance(v, (int, float)) and not isinstance(v, bool)
+                                          and math.isfinite(v) and v > 0):
+            return v
+        raise ValueError(f"must be a number > 0 (recorded seconds per wall second) or as_fast_as_possible, got "
+                         f"{yaml_type(v)}")
 
     @field_validator("path")
     @classmethod
@@ -191,8 +233,52 @@ class FileSource(_Strict):
             raise ValueError(f"{self.path} is not a run's sensors.npz: {exc}") from None
 
 
-Source = Annotated[Union[ZenohSource, MavlinkSource, FileSource], Field(discriminator="kind")]
-SOURCE_KINDS = ("zenoh", "mavlink", "file")
+class Ros2Source(_Strict):
+    kind: Literal["ros2"]
+    topic: str = Field("odom", description="a nav_msgs/msg/Odometry topic of the ros2 section's domain (relative "
+                       "names are in its namespace), as an rmw_zenoh node publishes it on the same Zenoh network; its "
+                       "twist drives a planar model (docs/ros2.md#odometry-from-ros-2)")
+    tick: float = MavlinkSource.model_fields["tick"]
+    speed_std: float = MavlinkSource.model_fields["speed_std"]
+    heading_std: float = MavlinkSource.model_fields["heading_std"]
+    turn_rate_std: float = MavlinkSource.model_fields["turn_rate_std"]
+
+    @field_validator("topic")
+    @classmethod
+    def _topic(cls, v):
+        parts = v.strip("/").split("/")
+        if not v or v.endswith("/") or not all(re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", p) for p in parts):
+            raise ValueError(f"{v!r} is not a ROS 2 topic name like odom or /robot1/odom")
+        return v
+
+    @property
+    def url(self) -> str:  # what FlightControllerTicks names its source by
+        return f"ros2:{self.topic}"
+
+
+Source = Annotated[Union[ZenohSource, MavlinkSource, FileSource, Ros2Source], Field(discriminator="kind")]
+SOURCE_KINDS = ("zenoh", "mavlink", "file", "ros2")
+
+
+class Ros2(_Strict):
+    domain_id: int = Field(0, ge=0, le=232, description="ROS_DOMAIN_ID of the ROS 2 nodes to talk to")
+    namespace: str = Field("/swarmloc", description="namespace of the topics: the estimate goes to "
+                           "<namespace>/agent<id>/pose and .../odom")
+    distro: Literal["jazzy", "humble"] = Field("jazzy", description="jazzy: type hashes in the keys (Jazzy and later); "
+                                               "humble: none (TypeHashNotSupported)")
+    publish: bool = Field(True, description="publish the estimate on ROS 2 topics (false: only read ros2 sources)")
+
+    @field_validator("namespace")
+    @classmethod
+    def _namespace(cls, v):
+        from swarmloc.wire.ros2 import check_namespace
+
+        return check_namespace(v)
+
+    def topics(self):
+        from swarmloc.wire.ros2 import Topics
+
+        return Topics(self.domain_id, self.namespace, self.distro)
 
 
 class MavlinkOutput(_Strict):
@@ -202,6 +288,9 @@ class MavlinkOutput(_Strict):
                                                                      "(position and attitude)")
     frame: Literal["local_ned", "local_frd"] = Field("local_ned", description="ODOMETRY's frame_id: local_ned for "
                                                      "PX4, local_frd for ArduPilot")
+    reset_gate: float = Field(5.0, gt=0, allow_inf_nan=False, description="a new swarm estimate that moves the one "
+                              "sent by more than this many of its standard deviations changes the reset counter, so "
+                              "the autopilot resets to it instead of gating it out (5: PX4's EKF2_EVP_GATE default)")
 
     @model_validator(mode="after")
     def _frame_is_odometry(self):
@@ -210,14 +299,29 @@ class MavlinkOutput(_Strict):
         return self
 
 
+class SetpointOutput(_Strict):
+    enabled: bool = Field(False, description="send the vehicle's commands to the flight controller as setpoints; "
+                          "nothing moves the vehicle unless this is true")
+    rate_hz: float = Field(20.0, gt=2.0, le=100.0, allow_inf_nan=False, description="setpoints sent a second "
+                           "(PX4 offboard leaves the mode below 2 Hz)")
+    stale_after: float = Field(0.5, gt=0, allow_inf_nan=False, description="s without a new estimate after which "
+                               "the setpoint becomes a hold (also while the flight controller's heartbeat is lost)")
+
+
 class Outputs(_Strict):
     swarm: bool = Field(True, description="publish the estimate on swarmloc/<swarm>/agent/<id>/estimate")
     mavlink: MavlinkOutput | None = Field(None, description="send the estimate to the flight controller of the "
                                           "mavlink source; null: not")
+    setpoints: SetpointOutput | None = Field(None, description="a closed-loop vehicle's commands to the flight "
+                                             "controller as SET_POSITION_TARGET_LOCAL_NED (docs/deploy.md#setpoints); "
+                                             "null: none")
     log: Path | None = Field(None, description="append every estimate to this file as a JSON line (relative to this "
                              "file's directory; docs/deploy.md#the-estimate-log); null: not")
+    record: Path | None = Field(None, description="record every frame the agent receives and sends, its sensor frames "
+                                "and estimates, as MCAP to this file, written as it goes (relative to this file's "
+                                "directory; docs/run-format.md#runmcap; `swarmloc rerun` plays it); null: not")
 
-    @field_validator("log")
+    @field_validator("log", "record")
     @classmethod
     def _relative_to_file(cls, v, info: ValidationInfo):
         return None if v is None else _base(info) / v.expanduser()
@@ -237,7 +341,7 @@ class Security(_Strict):
         if v is None:
             return None
         v = _base(info) / v.expanduser()
-        from swarmloc.auth import Keyring
+        from swarmloc.wire.auth import Keyring
 
         Keyring.load(v)  # a ValueError names the file and what is wrong with it
         return v
@@ -248,6 +352,42 @@ class SwarmClock(_Strict):
                                       "GPS-disciplined) of the swarm's tick 0: mavlink ticks end at epoch + k * tick "
                                       "and a recording plays from it, on every agent alike; null: each agent counts "
                                       "ticks from its own first sample")
+    offset_bound_ms: float = Field(10.0, gt=0, allow_inf_nan=False, description="a peer whose clock is estimated "
+                                   "further than this from ours is logged and counted (docs/deploy.md#clock-offsets)")
+
+
+class VehicleReference(_Strict):
+    """The circle a closed-loop vehicle's controller tracks (a scenario's `motion: {kind: track}`)."""
+
+    center: list[FiniteFloat] = Field(min_length=3, max_length=3, description="the circle's centre (m, east, north, "
+                                      "up; up is the height flown or driven at)")
+    radius: float = Field(0.0, ge=0, allow_inf_nan=False, description="m; 0: hold the centre")
+    period: FiniteFloat = Field(30.0, description="s per lap; negative: clockwise")
+    phase: FiniteFloat = Field(0.0, description="rad: the reference's angle around the centre at the swarm's t = 0, "
+                               "counter-clockwise from east")
+    yaw: FiniteFloat | None = Field(None, description="a constant yaw to hold (rad); null: face along the circle")
+
+    @field_validator("period")
+    @classmethod
+    def _nonzero(cls, v):
+        if v == 0:
+            raise ValueError("must not be 0")
+        return v
+
+
+class RosterEntry(_Strict):
+    id: int = Field(ge=0, description="another vehicle's agent id")
+    model: Literal["quadrotor", "ground-robot"] = Field(description="its model")
+
+
+class VehicleConfig(_Strict):
+    reference: VehicleReference | None = Field(None, description="closed loop: the circle the vehicle's controller "
+                                               "tracks, whose commands outputs.setpoints sends; null: estimation only")
+    roster: list[RosterEntry] = Field(default_factory=list, description="the swarm's other vehicles, whose relative "
+                                      "positions (a camera's, on a measurements source) and poses this one fuses")
+    force_noise: float = Field(0.02, ge=0, allow_inf_nan=False, description="std of the model's thrust or surge force "
+                               "error (N): the filter's process noise")
+    moment_noise: float = Field(2e-4, ge=0, allow_inf_nan=False, description="std of its moment error (N m)")
 
 
 class AgentFileConfig(_Strict):
@@ -255,7 +395,7 @@ class AgentFileConfig(_Strict):
     id: int = Field(ge=0, description="this agent's id, unique in the swarm")
     swarm: str = Field("default", description="swarm name: the key prefix swarmloc/<swarm>/")
     estimator: EstimatorChoice = Field(default_factory=EstimatorChoice)
-    model: str = Field(description="the platform's motion model (swarmloc.models.MOTION_MODELS); one the estimator "
+    model: str = Field(description="the platform's motion model (swarmloc.models.motion.MOTION_MODELS); one the estimator "
                        "runs on")
     prior: Prior
     landmarks: list[LandmarkSpec] = Field(default_factory=list, description="the known landmark map, observed by "
@@ -263,14 +403,24 @@ class AgentFileConfig(_Strict):
     # The same rules, words and defaults as a scenario's `estimation`.
     gate: float | None = Estimation.model_fields["gate"]
     gate_open_after: int = Estimation.model_fields["gate_open_after"]
-    zenoh: ZenohSession
+    zenoh: ZenohSession = Field(default_factory=lambda: ZenohSession.model_validate({}),
+                                description="the agent's Zenoh session; default: a peer connecting to "
+                                            f"{DEFAULT_ENDPOINT}")
     sensors: list[Source] = Field(default_factory=lambda: [ZenohSource(kind="zenoh")], min_length=1,
                                   description="where sensor data comes from; default: the swarm's sensor key")
     outputs: Outputs = Field(default_factory=Outputs)
     clock: SwarmClock = Field(default_factory=SwarmClock, description="the swarm clock ticks are numbered from")
+    vehicle: VehicleConfig | None = Field(None, description="quadrotor, ground-robot: closed loop and the swarm's other "
+                                          "vehicles; null: estimation only, alone")
     security: Security = Field(default_factory=Security, description="frame authentication")
     state_dir: Path | None = Field(None, description="directory of the checkpoint agent-<id>.state.npy (relative to "
                                    "this file's directory; created at start); null: no checkpoint")
+    ros2: Ros2 | None = Field(None, description="ROS 2 over Zenoh, as rmw_zenoh speaks it, with no ROS install "
+                              "(docs/ros2.md): the estimate on ROS 2 topics, odometry from one; null: none")
+    radio: Literal["direct", "netsim"] = Field("direct", description="direct: radio frames straight to the peers' "
+                                               "radio/rx keys, the network decides (a real swarm); netsim: through a "
+                                               "netsim, which decides who hears them and drives the clock (a rehearsal "
+                                               "of these files against an emulated swarm, lockstep included)")
 
     @field_validator("version")
     @classmethod
@@ -306,8 +456,8 @@ class AgentFileConfig(_Strict):
             raise _FieldError(("position",), f"{len(v.position)} numbers; model {model} needs {want}")
         if model == "planar-pose" and v.heading is None:
             raise _FieldError(("heading",), "required for model planar-pose (its state holds the heading)")
-        if model != "planar-pose" and v.heading is not None:
-            raise _FieldError(("heading",), f"only planar-pose has a heading in its state, not {model}")
+        if model not in ("planar-pose", *VEHICLES) and v.heading is not None:
+            raise _FieldError(("heading",), f"only planar-pose and the vehicles have a heading in their state, not {model}")
         return v
 
     @field_validator("landmarks")
@@ -334,6 +484,26 @@ class AgentFileConfig(_Strict):
                               "source gives frames (a mavlink or file source, or a zenoh one with role: frames)")
         return v
 
+    @model_validator(mode="after")
+    def _netsim_frames(self):
+        # Under netsim a sensor frame from anyone but netsim is refused (src-mismatch), so
+        # frames on a driver's key would all be dropped.
+        if self.radio == "netsim":
+            for i, s in enumerate(self.sensors):
+                if s.kind == "zenoh" and s.role == "frames" and s.key not in (None, self.sensor_key):
+                    raise _FieldError(("sensors", i, "key"), f"radio netsim: sensor frames come from netsim, on "
+                                      f"{self.sensor_key} (null), not {s.key}")
+        return self
+
+    @model_validator(mode="after")
+    def _ros2_sources(self):
+        for i, s in enumerate(self.sensors):
+            if s.kind == "ros2" and self.ros2 is None:
+                raise _FieldError(("sensors", i, "topic"), "a ros2 source needs the ros2 section (its domain)")
+            if s.kind == "ros2" and self.model not in ("planar-speed-heading", "planar-pose"):
+                raise _FieldError(("sensors", i, "kind"), f"odometry from ROS 2 drives a planar model, not {self.model}")
+        return self
+
     @field_validator("sensors")
     @classmethod
     def _recorded_agent(cls, v, info: ValidationInfo):
@@ -357,6 +527,37 @@ class AgentFileConfig(_Strict):
                               "sent on")
         return v
 
+    @field_validator("vehicle")
+    @classmethod
+    def _vehicle_fits(cls, v, info: ValidationInfo):
+        model, aid = info.data.get("model"), info.data.get("id")
+        if v is None or model is None:
+            return v
+        if model not in VEHICLES:
+            raise ValueError(f"only for {' and '.join(VEHICLES)}, not {model}")
+        ids = [r.id for r in v.roster]
+        if len(set(ids)) != len(ids) or aid in ids:
+            raise _FieldError(("roster",), f"ids must be unique and not this agent's ({aid}), got {ids}")
+        return v
+
+    @model_validator(mode="after")
+    def _vehicle_ticks(self):
+        # After every field: sensors, outputs and vehicle are checked against each other here.
+        if self.model in VEHICLES:
+            for i, s in enumerate(self.sensors):
+                if s.kind == "mavlink" and s.tick > VEHICLE_MAX_DT:
+                    raise _FieldError(("sensors", i, "tick"), f"{s.tick:g} s: a {self.model}'s dynamics and controller "
+                                      f"need a tick of at most {VEHICLE_MAX_DT:g} s")
+        sp = self.outputs.setpoints
+        if sp is not None and sp.enabled:
+            if not any(s.kind == "mavlink" for s in self.sensors):
+                raise _FieldError(("outputs", "setpoints"), "needs a sensors entry of kind mavlink: the flight "
+                                  "controller the setpoints go to")
+            if self.model not in VEHICLES or self.vehicle is None or self.vehicle.reference is None:
+                raise _FieldError(("outputs", "setpoints"), "only a closed-loop vehicle has commands: model quadrotor "
+                                  "or ground-robot with vehicle.reference")
+        return self
+
     @field_validator("security")
     @classmethod
     def _keys_of_this_swarm(cls, v, info: ValidationInfo):
@@ -364,7 +565,7 @@ class AgentFileConfig(_Strict):
         if v.tls and v.keys is None:
             raise _FieldError(("tls",), "needs keys: the directory with ca.pem and this agent's certificate")
         if v.keys is not None and swarm is not None:
-            from swarmloc.auth import Keyring
+            from swarmloc.wire.auth import Keyring
 
             ring = Keyring.load(v.keys)
             if ring.swarm != swarm:
@@ -380,13 +581,21 @@ class AgentFileConfig(_Strict):
 
     @property
     def keyring(self):
-        from swarmloc.auth import Keyring
+        from swarmloc.wire.auth import Keyring
 
         return None if self.security.keys is None else Keyring.load(self.security.keys)
 
     @property
     def state_file(self) -> Path | None:
         return None if self.state_dir is None else self.state_dir / f"agent-{self.id}.state.npy"
+
+
+def _vehicle_text(v: VehicleConfig) -> str:
+    ref = "estimation only" if v.reference is None else (
+        f"closed loop on a circle about {v.reference.center}, radius {v.reference.radius:g} m, "
+        f"{v.reference.period:g} s a lap")
+    roster = ", ".join(f"{r.id} {r.model}" for r in v.roster) or "none"
+    return f"{ref}; other vehicles: {roster}"
 
 
 def _utc(unix: float) -> str:
@@ -405,17 +614,25 @@ def _problems(exc: ValidationError) -> list[str]:
         if isinstance(cause, _FieldError):
             loc, msg = loc + list(cause.path), cause.message
         else:
-            msg = err["msg"].removeprefix("Value error, ")
+            msg = readable(err)
             if err["type"] in ("union_tag_invalid", "union_tag_not_found"):
                 loc.append("kind")
-        lines.append(f"{'.'.join(map(str, loc)) or '(top level)'}: {msg}")
+        loc = [p for i, p in enumerate(loc) if isinstance(p, int) or p in CONFIG_FIELDS
+               or (err["type"] == "extra_forbidden" and i == len(loc) - 1)]
+        line = f"{'.'.join(map(str, loc)) or '(top level)'}: {msg}"
+        if line not in lines:
+            lines.append(line)
     return lines
+
+
+CONFIG_FIELDS = schema_fields(AgentFileConfig) | {"kind"}
 
 
 def parse_config(data, base: Path | None = None) -> AgentFileConfig:
     """A validated configuration from its YAML's data; `base`: the directory of relative paths."""
     if not isinstance(data, dict):
-        raise ConfigError([f"(top level): an agent configuration is a YAML mapping, got {type(data).__name__}"])
+        got = "an empty file (null)" if data is None else yaml_type(data)
+        raise ConfigError([f"(top level): an agent configuration is a YAML mapping of fields, got {got}"])
     try:
         return AgentFileConfig.model_validate(data, context={"base": base or Path.cwd()})
     except ValidationError as exc:
@@ -439,15 +656,31 @@ def load(path: str | Path) -> AgentFileConfig:
 def scenario(cfg: AgentFileConfig):
     """The one-agent scenario whose agent `cfg.id` is this configuration's node."""
     p = cfg.prior
-    return parse({
+    me = {"id": cfg.id, "model": cfg.model, "start": p.position, "heading": p.heading or 0.0}
+    extra = {}
+    if cfg.model in VEHICLES:
+        # A vehicle's node reads the swarm's vehicles (their models: relative positions name
+        # them), its controller's circle (closed loop) and the tick its controller samples at.
+        v = cfg.vehicle or VehicleConfig()
+        agents = [me, *({"id": r.id, "model": r.model, "start": [0.0, 0.0, 0.0], "motion": {"kind": "track"}}
+                        for r in v.roster)]
+        if v.reference is not None:
+            me["motion"] = {"kind": "track", **v.reference.model_dump()}
+        ticks = [s.tick for s in cfg.sensors if s.kind == "mavlink"]
+        extra = {"world": {"agents": agents, "control": "agents" if v.reference is not None else "netsim"},
+                 "clock": {"dt": ticks[0] if ticks else VEHICLE_MAX_DT / 2.5},
+                 "sensors": {"vehicle": {"force_noise": v.force_noise, "moment_noise": v.moment_noise}}}
+    data = {
         "version": SCENARIO_VERSION, "name": f"agent-{cfg.id}",
-        "world": {"agents": [{"id": cfg.id, "model": cfg.model, "start": p.position, "heading": p.heading or 0.0}],
-                  "landmarks": [m.model_dump() for m in cfg.landmarks]},
+        "world": {"agents": [me], "landmarks": [m.model_dump() for m in cfg.landmarks]},
         # On a real platform the prior is what the file says: no drawn error.
         "estimation": {"initial_std": p.std, "initial_heading_std": p.heading_std, "initial_error": False,
                        "gate": cfg.gate, "gate_open_after": cfg.gate_open_after},
         "estimator": {"name": cfg.estimator.name, "params": cfg.estimator.params},
-    }, source=f"agent {cfg.id}'s configuration")
+    }
+    for key, value in extra.items():
+        data[key] = {**data.get(key, {}), **value}
+    return parse(data, source=f"agent {cfg.id}'s configuration")
 
 
 def node_spec(cfg: AgentFileConfig) -> NodeSpec:
@@ -464,10 +697,10 @@ def node_spec(cfg: AgentFileConfig) -> NodeSpec:
 
 
 def daemon_config(cfg: AgentFileConfig) -> AgentConfig:
-    """The daemon's settings: the file's Zenoh session, direct radio (there is no netsim), its
-    sources and outputs."""
+    """The daemon's settings: the file's Zenoh session and radio, its sources and outputs."""
     z = cfg.zenoh
-    return AgentConfig(swarm=cfg.swarm, connect=tuple(z.connect), listen=tuple(z.listen), mode=z.mode, direct=True,
+    return AgentConfig(swarm=cfg.swarm, connect=tuple(z.connect), listen=tuple(z.listen), mode=z.mode,
+                       direct=cfg.radio == "direct",
                        gossip=z.gossip and z.mode == "peer",
                        state_file=cfg.state_file,
                        sensor_keys=tuple(s.key or cfg.sensor_key for s in cfg.sensors
@@ -476,8 +709,57 @@ def daemon_config(cfg: AgentFileConfig) -> AgentConfig:
                                               if s.kind == "zenoh" and s.role == "measurements"),
                        sources=tuple(s for s in cfg.sensors if s.kind != "zenoh"),
                        publish_swarm=cfg.outputs.swarm, mavlink_output=cfg.outputs.mavlink,
+                       setpoints=cfg.outputs.setpoints if cfg.outputs.setpoints and cfg.outputs.setpoints.enabled
+                       else None, clock_bound=cfg.clock.offset_bound_ms * 1e-3,
                        estimate_log=cfg.outputs.log, epoch=cfg.clock.epoch, keyring=cfg.keyring,
-                       tls_dir=cfg.security.keys if cfg.security.tls else None)
+                       tls_dir=cfg.security.keys if cfg.security.tls else None,
+                       ros2=cfg.ros2.topics() if cfg.ros2 is not None else None,
+                       ros2_publish=cfg.ros2 is not None and cfg.ros2.publish, record=cfg.outputs.record,
+                       record_meta={"config": cfg.model_dump(mode="json")} if cfg.outputs.record is not None else None)
+
+
+WILDCARDS = ("0.0.0.0", "[::]", "::")
+BINDING = re.compile(r"(\w+)[/:](.*):(\d+)")  # tcp/HOST:PORT (Zenoh), udpin:HOST:PORT (MAVLink)
+
+
+def _same_port(a: str, b: str) -> bool:
+    """Two bindings one port cannot take both: the same protocol and port on the same address,
+    or on every address (0.0.0.0) and one of them; anything else (a serial device) when equal."""
+    (pa, ha, na), (pb, hb, nb) = ((m.groups() if (m := BINDING.fullmatch(re.split(r"[?#]", x)[0])) else (x, "", ""))
+                                  for x in (a, b))
+    return (pa, na) == (pb, nb) and (ha == hb or ha in WILDCARDS or hb in WILDCARDS)
+
+
+def hostmates(configs: list[tuple[Path, AgentFileConfig]]) -> list[str]:
+    """Why these agents cannot share one process, one `FILE: field: message` line each; empty
+    when they can. No field has to be equal across them (each agent has its own Zenoh session,
+    keys, sources and outputs): what is refused is what one process cannot hold twice."""
+    lines = []
+    ids, listens, links, files = [], [], [], []
+
+    def clash(path, field, value, taken, same, why):
+        for opath, ofield, ovalue in taken:
+            if same(value, ovalue):
+                other = "" if ovalue == value else f" ({ovalue})"
+                lines.append(f"{path}: {field}: {value} is {opath}'s {ofield} too{other}: {why}")
+                return
+        taken.append((path, field, value))
+
+    for path, cfg in configs:
+        clash(path, "id", cfg.id, ids, int.__eq__, "the agents of one process are told apart by their ids (their "
+              "threads, log lines and checkpoints agent-<id>.state.npy)")
+        for i, e in enumerate(cfg.zenoh.listen):
+            clash(path, f"zenoh.listen.{i}", e, listens, _same_port, "two Zenoh sessions cannot listen on one port")
+        for i, src in enumerate(cfg.sensors):
+            if src.kind == "mavlink":
+                clash(path, f"sensors.{i}.url", src.url, links, _same_port,
+                      "a flight controller link is one agent's (a serial device or a UDP port opens once, and a "
+                      "flight controller follows one companion's estimate)")
+        for name in ("log", "record"):
+            out = getattr(cfg.outputs, name)
+            if out is not None:
+                clash(path, f"outputs.{name}", out.resolve(), files, Path.__eq__, "two agents cannot write one file")
+    return lines
 
 
 def summary(cfg: AgentFileConfig, spec: NodeSpec) -> list[str]:
@@ -493,26 +775,40 @@ def summary(cfg: AgentFileConfig, spec: NodeSpec) -> list[str]:
             return f"zenoh {s.key or cfg.sensor_key}" + (" (measurements)" if s.role == "measurements" else "")
         if s.kind == "mavlink":
             return f"mavlink {s.url}" + (f" at {s.baud} baud" if s.baud else "")
+        if s.kind == "ros2":
+            return f"ros2 {s.topic} (nav_msgs/msg/Odometry, domain {cfg.ros2.domain_id})"
         return f"file {s.path} " + ("as fast as possible" if s.speed == "as_fast_as_possible" else f"at {s.speed:g}x")
 
     outputs = [f"swarm {wire.Keys(cfg.swarm).estimate(cfg.id)}"] if o.swarm else []
     if o.mavlink is not None:
         m = o.mavlink
         outputs.append(f"mavlink {m.message}" + (f" {m.frame}" if m.message == "odometry" else "") + f" at {m.rate_hz:g} Hz")
+    if o.setpoints is not None:
+        sp = o.setpoints
+        outputs.append(f"setpoints at {sp.rate_hz:g} Hz, hold after {sp.stale_after:g} s" if sp.enabled else
+                       "setpoints off (enabled: false)")
     if o.log is not None:
         outputs.append(f"log {o.log}")
+    if o.record is not None:
+        outputs.append(f"record {o.record}")
+    if cfg.ros2 is not None and cfg.ros2.publish:
+        t = cfg.ros2.topics()
+        outputs.append(f"ros2 {t.pose(cfg.id)}, {t.odom(cfg.id)} (domain {t.domain_id}, {t.distro})")
     gate = "off" if cfg.gate is None else f"{cfg.gate:g}, open after {cfg.gate_open_after}"
     rows = [
         ("id", str(cfg.id)), ("swarm", cfg.swarm),
         ("estimator", cfg.estimator.name + (f" ({', '.join(f'{k}: {v}' for k, v in params.items())})" if params else "")),
         ("model", cfg.model),
         ("prior", prior), ("landmarks", ", ".join(f"{m.id} {m.position}" for m in cfg.landmarks) or "none"),
-        ("gate", gate),
+        ("gate", gate), ("radio", "direct: frames straight to the peers" if cfg.radio == "direct" else
+                         "netsim: frames and clock through a netsim"),
         ("zenoh", f"{z.mode}; listen {', '.join(z.listen) or '-'}; connect {', '.join(z.connect) or '-'}"
                   + ("; gossip" if z.gossip else "")),
         ("sensors", "; ".join(map(source, cfg.sensors))), ("outputs", "; ".join(outputs) or "none"),
-        ("clock", "own: ticks from the first sample" if cfg.clock.epoch is None else
-         f"swarm: tick 0 at UNIX {cfg.clock.epoch:.3f} ({_utc(cfg.clock.epoch)})"),
+        ("clock", ("own: ticks from the first sample" if cfg.clock.epoch is None else
+                   f"swarm: tick 0 at UNIX {cfg.clock.epoch:.3f} ({_utc(cfg.clock.epoch)})")
+         + f"; peers' offsets logged beyond {cfg.clock.offset_bound_ms:g} ms"),
+        *([("vehicle", _vehicle_text(cfg.vehicle))] if cfg.vehicle is not None else []),
         ("checkpoint", str(cfg.state_file) if cfg.state_file else "none"),
         ("security", (f"frames authenticated with {cfg.security.keys}" + ("; Zenoh over mutual TLS" if
                       cfg.security.tls else "")) if cfg.security.keys else "none: frames are not authenticated"),

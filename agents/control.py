@@ -8,6 +8,7 @@ even when it took a free port. Zenoh is imported only when a session is opened.
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import re
@@ -86,10 +87,31 @@ def lookup(swarm: str) -> dict | None:
     return None
 
 
+class SwarmTaken(Failure):
+    """Another live launcher holds this swarm name (`running`: its runtime entry)."""
+
+    def __init__(self, swarm: str, running: dict):
+        super().__init__(f"swarm '{swarm}' is already running (launcher pid {running['pid']}, {running['endpoint']}); "
+                         "give this run another --swarm name", 2)
+        self.running = running
+
+
 class Registration:
     """A launcher's runtime entry for its swarm: claimed exclusively, removed when the run ends."""
 
+    @classmethod
+    def first_free(cls, base: str, **info) -> tuple["Registration", list[dict]]:
+        """The first of base, base-2, base-3, ... that no live launcher holds, claimed; and the
+        entries of the launchers that hold the names before it."""
+        taken = []
+        for n in itertools.count(1):
+            try:
+                return cls(base if n == 1 else f"{base}-{n}", **info), taken
+            except SwarmTaken as exc:
+                taken.append(exc.running)
+
     def __init__(self, swarm: str, **info):
+        self.swarm = swarm
         self.path = runtime_dir() / f"{swarm}.json"
         self.info = {"swarm": swarm, "pid": os.getpid(), **info}
         tmp = self._write()
@@ -101,8 +123,7 @@ class Registration:
                 except FileExistsError:
                     running = lookup(swarm)  # removes a stale entry, then we try again
                     if running is not None:
-                        raise Failure(f"swarm '{swarm}' is already running (launcher pid {running['pid']}, "
-                                      f"{running['endpoint']}); give this run another --swarm name", 2) from None
+                        raise SwarmTaken(swarm, running) from None
         finally:
             tmp.unlink()
 
@@ -151,17 +172,13 @@ class ControlClient:
         self.sealer = self.opener = None
         keys = os.environ.get(KEYS_ENV) or (found or {}).get("keys")
         if keys:
-            from swarmloc import auth
+            from swarmloc.wire import auth
 
             try:
                 ring = auth.Keyring.load(Path(keys))
             except ValueError as exc:
                 raise Failure(str(exc), 2) from None
             self.sealer, self.opener = auth.Sealer(ring, auth.operator()), auth.Opener(ring)
-
-    def _open(self, data: bytes) -> bytes:
-        """A reply's frame, authenticated when we hold the swarm's key (else read as it is)."""
-        return data if self.opener is None else self.opener.open(data)[0]
 
     def __enter__(self) -> "ControlClient":
         import zenoh
@@ -176,46 +193,56 @@ class ControlClient:
         self.session.close()
 
     def request(self, op: str, args: dict | None = None, timeout: float = 3.0) -> dict:
-        from swarmloc.messages import Control, Reply
-
-        from swarmloc import auth
+        from swarmloc.wire import auth
+        from swarmloc.wire.messages import Control, Reply
 
         payload = wire.encode(Control(op, args or {}), 0, 0)
         if self.sealer is not None:
             payload = self.sealer.seal(payload)
+        unreadable = None
         for r in self.session.get(wire.Keys(self.swarm).control, payload=payload, timeout=timeout):
             if r.ok is None:
                 continue
-            try:
-                body = wire.decode(self._open(r.ok.payload.to_bytes()), expect=(Reply,)).body
+            try:  # netsim's, sealed by netsim: anyone can answer a query, the first is not the answer
+                data = r.ok.payload.to_bytes()
+                body = wire.decode(data if self.opener is None else self.opener.open(data, 0)[0], expect=(Reply,)).body
             except (wire.WireError, auth.AuthError) as exc:
-                raise Failure(f"unreadable reply from netsim: {exc}") from None
+                unreadable = exc
+                continue
             if not body.ok:
                 raise Failure(f"netsim refused {op}: {body.error}", 2)
             return body.data
+        if unreadable is not None:
+            raise Failure(f"unreadable reply from netsim: {unreadable}")
         raise NotRunning(self.swarm, self.endpoints)
 
     def agents(self, timeout: float = AGENTS_TIMEOUT) -> AgentAnswers:
         """One round of asking every agent of the swarm: its stats (docs/wire.md, section 8) and
         whether its liveliness token is there."""
-        from swarmloc.messages import Reply
+        import zenoh
+
+        from swarmloc.wire import auth
 
         keys = wire.Keys(self.swarm)
         start = time.monotonic()
         # Both queries go out before either is read: the round costs one timeout, not two.
-        stats = self.session.get(keys.stats("*"), timeout=timeout)
+        nonce = auth.query_nonce()
+        # No consolidation: Zenoh would keep one answer per key, a stranger's as readily as the agent's.
+        stats = self.session.get(keys.stats("*"), payload=nonce.encode(), timeout=timeout,
+                                 consolidation=zenoh.ConsolidationMode.NONE)
         tokens = self.session.liveliness().get(keys.alive("*"), timeout=timeout)
         out = AgentAnswers()
         for r in stats:
             if r.ok is None:
                 continue
-            try:
-                env = wire.decode(self._open(r.ok.payload.to_bytes()), expect=(Reply,))
-            except (wire.WireError, ValueError) as exc:  # auth.AuthError is a ValueError
+            try:  # only an agent's own answer to this query counts (issue 26, finding 3)
+                aid, data = auth.open_stats_reply(self.opener, str(r.ok.key_expr), r.ok.payload.to_bytes(), nonce)
+            except ValueError as exc:  # auth.AuthError is a ValueError
                 out.unreadable[str(r.ok.key_expr)] = str(exc)
                 continue
-            out.stats[env.src] = env.body.data
-            out.reply_s[env.src] = time.monotonic() - start
+            if aid not in out.stats:
+                out.stats[aid] = data
+                out.reply_s[aid] = time.monotonic() - start
         for r in tokens:
             try:
                 out.alive.add(wire.Keys.agent_of(str(r.ok.key_expr)))

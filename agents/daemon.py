@@ -12,14 +12,13 @@ Two radio modes:
   who left or came back (peer_left, peer_joined), and its timers stand in for the NACKs.
 
 Sensor frames come from Zenoh keys (netsim, or a driver) and from sources the loop polls (a
-flight controller, a recording: agents/sources.py); the estimate goes to the swarm's key and,
+flight controller, a recording: agents/companion/sources.py); the estimate goes to the swarm's key and,
 when configured, to the flight controller (docs/deploy.md#sensor-sources).
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import logging
 import math
@@ -35,23 +34,33 @@ from pathlib import Path
 
 import numpy as np
 import zenoh
+from msgspec.structs import replace
 
-from agents import sources as sensor_sources
-from swarmloc import auth, exit_on_sigterm, limits, wire
-from swarmloc.messages import Clock, Done, EstimateMsg, LinkNack, Reply, Sensors, TargetEstimateMsg
-from swarmloc.node import Node, NodeSpec, Outbox, Timers, estimate_of
+from agents import timesync
+from agents.companion import output as fc_output
+from agents.companion import sources as sensor_sources
+from swarmloc import wire
+from swarmloc.node import Node, NodeSpec, Outbox, Send, Timers, estimate_of
+from swarmloc.process import exit_on_sigterm
+from swarmloc.wire import auth, limits
+from swarmloc.wire.messages import Clock, Done, EstimateMsg, LinkNack, Reply, Sensors, TargetEstimateMsg, TimeSync
 
 log = logging.getLogger("swarmloc.agent")
 
 MAX_PENDING = 256
 """Measurement frames held for the next frame at most; more are dropped and counted (a driver
 publishing while the frame source is silent must not grow the agent without bound)."""
-MAX_MERGED = 64  # measurements of one kind in a frame: the wire's limit (swarmloc.messages.Sensors)
+MAX_MERGED = 64  # measurements of one kind in a frame: the wire's limit (swarmloc.wire.messages.Sensors)
 MERGED_LISTS = ("ranges", "relpos", "targets", "rb", "landmarks")
 MERGED_SINGLE = ("gnss", "pseudoranges")
 
 BROADCAST = "all"
+RECORDED = ("sensors", "measurements", "rx", "clock")  # inputs an agent's recording keeps (with what it sends)
 NETSIM_ID = 0  # sender id of netsim's own frames (clock, sensors, NACKs)
+MAX_DELIVERY_GAP = 4 * limits.INBOX_FRAMES
+"""Deliveries an agent steps over at once: more than its inbox could have lost between two it
+took. A number further ahead is refused (rx-too-far), so that a forged one cannot push every
+genuine delivery below the count."""
 
 
 @dataclass
@@ -69,10 +78,16 @@ class AgentConfig:
     sources: tuple = ()  # polled sources: agents.config's MavlinkSource and FileSource entries
     publish_swarm: bool = True  # the estimate on the swarm's estimate key
     mavlink_output: object | None = None  # agents.config.MavlinkOutput: the estimate to the flight controller
+    setpoints: object | None = None  # agents.config.SetpointOutput: a closed-loop vehicle's commands to it
+    clock_bound: float = 0.010  # s: direct mode, a peer's clock offset beyond this is logged and counted
     estimate_log: Path | None = None  # every estimate appended as a JSON line (docs/deploy.md#the-estimate-log)
     epoch: float | None = None  # the swarm clock: UNIX time of tick 0, which polled sources number ticks from
-    keyring: object | None = None  # swarmloc.auth.Keyring: frames sealed and opened with it (docs/security.md)
+    keyring: object | None = None  # swarmloc.wire.auth.Keyring: frames sealed and opened with it (docs/security.md)
     tls_dir: Path | None = None  # key directory: Zenoh over mutual TLS with its ca.pem and agent-<id>.pem/.key
+    ros2: object | None = None  # swarmloc.wire.ros2.Topics: the ROS 2 domain of ros2 sources and outputs (docs/ros2.md)
+    ros2_publish: bool = False  # the estimate also on ROS 2 topics
+    record: Path | None = None  # an MCAP recording of every frame in and out (docs/run-format.md#runmcap)
+    record_meta: dict | None = None  # what the recording says about the agent (its configuration)
 
 
 class AgentDaemon:
@@ -90,14 +105,20 @@ class AgentDaemon:
         self.consumed = 0  # netsim's delivery number of the last radio frame accepted
         self.clock_k = -1  # tick of the last clock frame
         self.rejected: Counter[str] = Counter()
+        self.door: Counter[str] = Counter()  # refused in Zenoh's callbacks, before the inbox
+        self._door_lock = threading.Lock()
+        self.deliveries_lost = 0  # netsim's deliveries that never reached us (an inbox overflowed): stepped over
         self.hop_latency: list[float] = []  # s from the sender's publish to our loop picking the frame up
         self.handled = 0
         self.ticks = 0  # sensor frames handled
         self.ticks_skipped = 0  # ticks whose sensor frame never reached the node
         self.sensor_lag: list[float] = []  # real time: s from a sensor frame's arrival to the node stepping on it
         self._last_published = None
-        self.sources: list = []  # polled (agents/sources.py), built by open()
+        self.sources: list = []  # polled (agents/companion/sources.py), built by open()
         self.fc = None  # the FlightControllerTicks among them that outputs.mavlink goes to
+        self.fc_out: fc_output.FcOutputs | None = None  # what goes to that FC (agents/companion/output.py)
+        # Direct mode: the peers' clock offsets, from echoed send stamps (agents/timesync.py).
+        self.clocks = timesync.PeerClocks(node.id, cfg.clock_bound) if cfg.direct else None
         self.frame_source = None  # the source of the last sensor frame stepped on, and its time
         self.frame_t = 0.0
         self._last_checkpoint = -1e9
@@ -117,6 +138,8 @@ class AgentDaemon:
         self.opener = auth.Opener(cfg.keyring) if cfg.keyring is not None else None
         self.model_t = 0.0  # modelled time of the last sensor frame
         self.speed, self.clock_t, self.clock_wall = 1.0, 0.0, time.monotonic()  # real time: the last clock frame
+        self.ros2 = None  # swarmloc.wire.ros2.Ros2Publisher
+        self.recorder = None  # swarmloc.experiment.recording.Recorder
 
     # ---------------------------------------------------------------- zenoh plumbing
 
@@ -140,6 +163,20 @@ class AgentDaemon:
         def frame(kind):
             return lambda s: put((kind, wire.bounded(s.payload), s.attachment))
 
+        tagged = self.opener is not None
+
+        def delivery(s):
+            # Cheap refusals first: a delivery number we consumed already is a copy (a replay at
+            # any rate, issue 26 finding 4), dropped here before it costs a MAC or a place in the
+            # inbox that a genuine delivery needs. Only netsim's numbers ever raise `consumed`.
+            att = s.attachment.to_bytes() if s.attachment is not None else None
+            d = wire.decode_delivery(att[:-auth.TAG_BYTES] if tagged and att is not None else att)
+            if d is not None and d[0] <= self.consumed:
+                with self._door_lock:
+                    self.door["rx-out-of-sequence"] += 1
+                return
+            put(("rx", wire.bounded(s.payload), s.attachment))
+
         sensor_keys = (self.keys.sensors(aid),) if self.cfg.sensor_keys is None else self.cfg.sensor_keys
         self._subs = [
             # Sensor frames carry no attachment: the slot holds their arrival, for the lag stats.
@@ -147,7 +184,7 @@ class AgentDaemon:
               for key in dict.fromkeys(sensor_keys)),
             *(self.session.declare_subscriber(key, lambda s: put(("measurements", wire.bounded(s.payload), None)))
               for key in dict.fromkeys(self.cfg.measurement_keys)),
-            self.session.declare_subscriber(self.keys.radio_rx(aid), frame("rx")),
+            self.session.declare_subscriber(self.keys.radio_rx(aid), frame("rx") if self.cfg.direct else delivery),
             self.session.declare_subscriber(self.keys.clock, frame("clock")),
         ]
         if self.cfg.direct:
@@ -166,18 +203,35 @@ class AgentDaemon:
         self._radio_options = radio
         self._stats_key = self.keys.stats(aid)
         self._stats_q = self.session.declare_queryable(self._stats_key, lambda q: put(("stats", q, None)))
-        self.sources = sensor_sources.build(self.node, self.cfg.sources, self.cfg.mavlink_output, self.cfg.epoch)
+        self.sources = sensor_sources.build(self.node, self.cfg.sources, self.cfg.mavlink_output, self.cfg.epoch,
+                                            self.session, self.cfg.ros2)
+        if self.cfg.ros2 is not None and self.cfg.ros2_publish and self.node.model.state_dim:
+            from swarmloc.wire.ros2 import Ros2Publisher
+
+            self.ros2 = Ros2Publisher(self.session, self.cfg.ros2, f"swarmloc_agent_{aid}", [aid], radio)
+        if self.cfg.record is not None:
+            from swarmloc.experiment.recording import Recorder
+
+            # Wall-clock log times (UNIX ns): an agent's recording has no modelled clock of its own.
+            self.recorder = Recorder(self.cfg.record, {"writer": "agent", "id": aid, "swarm": self.cfg.swarm,
+                                                       "model": self.node.model.name, "algorithm": self.node.algorithm,
+                                                       **(self.cfg.record_meta or {})}, start_ns=0)
         if self.cfg.estimate_log is not None:
             self.cfg.estimate_log.parent.mkdir(parents=True, exist_ok=True)
             self._log = open(self.cfg.estimate_log, "a", buffering=1)  # a line at a time: a kill loses none
-        if self.cfg.mavlink_output is not None:
+        if self.cfg.mavlink_output is not None or self.cfg.setpoints is not None:
             self.fc = next(s for s in self.sources if isinstance(s, sensor_sources.FlightControllerTicks))
+            self.fc_out = fc_output.FcOutputs(self.node, self.fc, self.cfg.mavlink_output, self.cfg.setpoints)
         # Declared last: once netsim sees the token, every subscription above is in place.
         self._token = self.session.liveliness().declare_token(self.keys.alive(aid))
 
     def close(self) -> None:
         for source in self.sources:
             source.close()
+        if self.ros2 is not None:
+            self.ros2.close()
+        if self.recorder is not None:
+            self.recorder.close()
         if self._log is not None:
             self._log.close()
         try:
@@ -199,19 +253,25 @@ class AgentDaemon:
                 "ticks_skipped": self.ticks_skipped,
                 "sensor_lag_ms_median": lag[len(lag) // 2] * 1e3 if lag else None,
                 "sensor_lag_ms_max": lag[-1] * 1e3 if lag else None,
-                "sent": self.sent, "commands": self.commands, "consumed": self.consumed, "rejected": dict(self.rejected),
+                "sent": self.sent, "commands": self.commands, "consumed": self.consumed, "rejected": dict(self.rejected + self.door),
+                "deliveries_lost": self.deliveries_lost,
                 **({"peers": sorted(self.peers), "peer_delay_ms": {
                     a: {"min": min(d) * 1e3, "median": float(np.median(d)) * 1e3}
                     for a, d in sorted(self.peer_delay.items()) if d}} if self.cfg.direct else {}),
                 "since_frame_s": None if self.frame_wall is None else time.monotonic() - self.frame_wall,
                 "node_drops": dict(self.node.drops), **getattr(self.node, "stats", {}),
                 **({"sources": {s.name: s.stats() for s in self.sources}} if self.sources else {}),
+                **({"outputs": self.fc_out.stats()} if self.fc_out is not None else {}),
+                **(self.clocks.stats() if self.clocks is not None else {}),
                 **({"merged": dict(self.merged)} if self.cfg.measurement_keys else {}),
                 "inbox": self.inbox.stats()}
 
     def _reply_stats(self, query) -> None:
         # Reply on our own key, not the query's: a wildcard query must not consolidate agents away.
-        query.reply(self._stats_key, self._seal(wire.encode(Reply(True, "", self.stats()), self.node.id, 0)))
+        # The query's nonce goes back under our seal: only this answer answers that query.
+        nonce = auth.nonce_of(query.payload) if query.payload is not None else ""
+        data = {**self.stats(), **({"nonce": nonce} if nonce else {})}
+        query.reply(self._stats_key, self._seal(wire.encode(Reply(True, "", data), self.node.id, 0)))
 
     # ---------------------------------------------------------------- loop
 
@@ -224,15 +284,21 @@ class AgentDaemon:
             for source in self.sources:
                 for body in source.ready(now):
                     unacked |= self._input("frame", body, source)
+            self._fc_poll(now)
+            self._time_sync(now)
             if unacked and self.inbox.empty():
                 # One estimate and one `done` for everything that was queued together: fewer
                 # frames, and fewer wake-ups of netsim, which acts on the last `done` only.
                 unacked = False
                 self._publish_estimate()
                 # Always acknowledge, even a rejected input: lockstep must not wait on us for nothing.
-                self._pub_done.put(self._seal(wire.encode(Done(self.node.k, self.consumed, self.sent, self.commands), self.node.id,
-                                                          self.handled)))
-            wait = min([0.5, *(s.wait(time.monotonic()) for s in self.sources)])
+                done = self._seal(wire.encode(Done(self.node.k, self.consumed, self.sent, self.commands), self.node.id,
+                                               self.handled))
+                self._pub_done.put(done)
+                if self.recorder is not None:
+                    self._record(self.keys.done(self.node.id), done)
+                    self.recorder.end_tick(self.node.k, 0.0)  # flushes when one is due
+            wait = min([0.5, *(s.wait(time.monotonic()) for s in self.sources), self._fc_wait(time.monotonic())])
             if not self.node.synchronous and (due := self.timers.next_due()) is not None:
                 wait = min(wait, max(0.0, due - self._now()))
             try:  # timed, so a signal handler gets its turn in this thread
@@ -265,6 +331,9 @@ class AgentDaemon:
             self._send(s)
         return True
 
+    def _record(self, key: str, data: bytes) -> None:
+        self.recorder.frame(key, data, time.time())
+
     def _reject(self, reason: str, why: str) -> None:
         self.rejected[reason] += 1
         n = self.rejected[reason]
@@ -295,6 +364,8 @@ class AgentDaemon:
             return self._reject("auth-src-mismatch", f"{kind}: sealed by {sender}, says src {env.src}")
         if kind in ("sensors", "clock") and not self.cfg.direct and env.src != NETSIM_ID:
             return self._reject("src-mismatch", f"{kind} from {env.src}")
+        if kind == "sensors" and env.dst is not None and env.dst != self.node.id:
+            return self._reject("misaddressed", f"sensor frame for {env.dst}")
         return env
 
     def _now(self) -> float:
@@ -313,10 +384,17 @@ class AgentDaemon:
         if kind == "alive":
             return self._membership(data, attachment)
         if kind == "frame":  # from a polled source: decoded already, arrived just now
+            if self.recorder is not None:  # as it would cross Zenoh from a driver
+                self._record(self.keys.sensors(self.node.id), wire.encode(data, self.node.id, self.ticks + 1))
             return self._step(data, attachment, None)
         if data is None:
             self._reject("oversize", kind)
             return None if kind == "clock" else []
+        if self.recorder is not None and kind in RECORDED:
+            aid = self.node.id
+            key = {"sensors": self.keys.sensors(aid), "rx": self.keys.radio_rx(aid), "clock": self.keys.clock,
+                   "measurements": (self.cfg.measurement_keys or (self.keys.sensors(aid),))[0]}[kind]
+            self._record(key, data)
         if kind == "clock":
             env = self._envelope(kind, data, (Clock,))
             if env is None:
@@ -356,8 +434,15 @@ class AgentDaemon:
             if delivery is None:
                 return self._reject("rx-unnumbered", "radio frame without a delivery number") or []
             n, sent = delivery
-            if n != self.consumed + 1:
+            if n <= self.consumed:
                 return self._reject("rx-out-of-sequence", f"delivery {n} after {self.consumed}") or []
+            if n - self.consumed > MAX_DELIVERY_GAP:
+                return self._reject("rx-too-far", f"delivery {n} after {self.consumed}") or []
+            if n > self.consumed + 1:
+                # Deliveries in between were lost (our inbox overflowed): a gap to step over, not
+                # a reason to refuse every later one (issue 26, finding 4).
+                self.deliveries_lost += n - self.consumed - 1
+                log.warning("agent %s: deliveries %d..%d lost", self.node.id, self.consumed + 1, n - 1)
             self.consumed = n
             if sent is not None and len(self.hop_latency) < 100_000:
                 self.hop_latency.append(time.perf_counter() - sent)
@@ -366,8 +451,14 @@ class AgentDaemon:
             return []
         if self.cfg.direct:
             sent = wire.decode_send_time(attachment.to_bytes() if attachment is not None else None)
+            arrival = time.time()
             if sent is not None and math.isfinite(sent) and env.src in self.peers:
-                self.peer_delay.setdefault(env.src, deque(maxlen=256)).append(time.time() - sent)
+                self.peer_delay.setdefault(env.src, deque(maxlen=256)).append(arrival - sent)
+                self.clocks.heard(env.src, sent, arrival)
+            if isinstance(env.body, TimeSync):  # the daemon's, not the node's
+                if env.src != self.node.id:
+                    self.clocks.synced(env.src, env.body, sent, arrival)
+                return []
         return self._radio(env)
 
     def _membership(self, key: str, up: bool) -> list:
@@ -406,7 +497,7 @@ class AgentDaemon:
             prior = self.node.estimate()
             self.node.resume(frame.k - 1, prior.mean, prior.cov)
         sends = fired + self.node.step(frame)
-        if self.node.k == frame.k:
+        if self.node.k == frame.k and frame.k > before:  # a stale frame (dropped by the node) is no tick
             self.ticks += 1
             if before >= 0:
                 self.ticks_skipped += max(0, frame.k - before - 1)
@@ -421,6 +512,7 @@ class AgentDaemon:
         motion data are not used."""
         lists = {f: list(getattr(frame, f)) for f in MERGED_LISTS}
         single = {f: getattr(frame, f) for f in MERGED_SINGLE}
+        seen = {r.target: r for r in frame.vehicle.seen} if frame.vehicle is not None else {}
         for part in self.pending:
             for f in MERGED_LISTS:
                 for m in getattr(part, f):
@@ -439,8 +531,27 @@ class AgentDaemon:
             for f in ("odometry", "imu", "align"):
                 if getattr(part, f) is not None:
                     self.merged[f"{f}-ignored"] += 1
+            if part.vehicle is not None:
+                # A camera's relative positions to other vehicles: the only part of a vehicle
+                # reading a driver has (its command, attitude and dt are the frame source's).
+                # The latest sighting of each vehicle supersedes earlier ones: a tick fuses one
+                # per target, and a backlog (frames were late) costs no backlog of fusions.
+                if frame.vehicle is None:
+                    self.merged["vehicle-ignored"] += 1
+                else:
+                    for r in part.vehicle.seen:
+                        if r.target in seen:
+                            self.merged["seen-superseded"] += 1
+                        self.merged["seen"] += 1
+                        seen[r.target] = r
         self.pending = []
-        return dataclasses.replace(frame, **lists, **single)
+        merged_seen = list(seen.values())
+        # Changed or not by identity: == on messages compares their arrays, which have no one
+        # truth value (a superseded sighting raised ValueError here; tests/test_fuzz.py).
+        if frame.vehicle is not None and (len(merged_seen) != len(frame.vehicle.seen) or
+                                          any(a is not b for a, b in zip(merged_seen, frame.vehicle.seen))):
+            lists["vehicle"] = replace(frame.vehicle, seen=merged_seen[:MAX_MERGED])
+        return replace(frame, **lists, **single)
 
     def _checkpoint(self) -> None:
         # A file write costs ~2 ms here, a fifth of a lockstep tick: at most every 0.2 s of wall
@@ -506,7 +617,10 @@ class AgentDaemon:
             # The sender's UNIX time: the receiver's apparent delay bounds the clocks' offset.
             pub.put(data, attachment=wire.encode_send_time(time.time()))
         else:
+            key = self.keys.radio_tx(self.node.id)
             self._pub_tx.put(data, attachment=wire.encode_send_time(time.perf_counter()))
+        if self.recorder is not None:
+            self._record(key, data)
         self.sent += 1
 
     def _publish_command(self) -> None:
@@ -517,6 +631,33 @@ class AgentDaemon:
             return
         self.commands += 1
         self._pub_cmd.put(self._seal(wire.encode(cmd, self.node.id, self.commands)))
+        self._fc_command(cmd)
+
+    # ---------------------------------------------------------------- the flight controller's outputs
+
+    def _fc_estimate(self, e) -> None:
+        """A new estimate for the FC's stream (agents/companion/output.py propagates and paces it)."""
+        if self.fc_out is not None:
+            self.fc_out.estimate(e.k, e.mean, e.cov, self.frame_source is self.fc)
+
+    def _fc_command(self, cmd) -> None:
+        """The command in force for the FC's frames, and its setpoints when they are enabled."""
+        if self.fc_out is not None:
+            self.fc_out.command(cmd.u, self.node.estimate().mean)
+
+    def _fc_poll(self, now: float) -> None:
+        if self.fc_out is not None:
+            self.fc_out.poll(now)
+
+    def _fc_wait(self, now: float) -> float:
+        return self.fc_out.wait(now) if self.fc_out is not None else math.inf
+
+    # ---------------------------------------------------------------- the peers' clocks
+
+    def _time_sync(self, now: float) -> None:
+        """Direct mode: every period, the peers' send stamps echoed (agents/timesync.py)."""
+        if self.clocks is not None and self.peers and self.clocks.due(now):
+            self._send(Send(self.clocks.sync_frame()))
 
     def _publish_estimate(self) -> None:
         if self.node.model.state_dim == 0:
@@ -530,17 +671,19 @@ class AgentDaemon:
         if self._log is not None:
             self._log.write(json.dumps({"k": e.k, "t": self.frame_t, "wall": time.time(), "mean": e.mean.tolist(),
                                         "cov": e.cov.tolist()}) + "\n")
-        if self.fc is not None:
-            # On the FC's clock: the tick's own time when the FC's samples made the frame, else
-            # the latest sample's (a frame from another source is stamped on another clock).
-            t = self.frame_t if self.frame_source is self.fc else self.fc.last_t
-            sensor_sources.to_flight_controller(self.fc, self.node.model.name, e.mean, e.cov, t)
-        if not self.cfg.publish_swarm:
+        self._fc_estimate(e)
+        if self.ros2 is not None:
+            self.ros2.publish(self.node.id, self.node.model.name, self.frame_t, e.mean, e.cov, time.time_ns())
+        if not self.cfg.publish_swarm and self.recorder is None:
             return
         nis = np.array(e.nis, float).reshape(-1, 2) if e.nis else None
         targets = [TargetEstimateMsg(o, m, P) for o, m, P in e.targets]
-        self._pub_est.put(self._seal(wire.encode(EstimateMsg(e.k, self.node.algorithm, e.mean, e.cov, nis, targets),
-                                                 self.node.id, self.handled)))
+        data = self._seal(wire.encode(EstimateMsg(e.k, self.node.algorithm, e.mean, e.cov, nis, targets), self.node.id,
+                                      self.handled))
+        if self.recorder is not None:
+            self._record(self.keys.estimate(self.node.id), data)
+        if self.cfg.publish_swarm:
+            self._pub_est.put(data)
 
 
 # ---------------------------------------------------------------------------- entry points
@@ -557,8 +700,19 @@ def zenoh_message(exc: Exception) -> str:
 
 def serve(node: Node, cfg: AgentConfig) -> None:
     """An agent's whole life: checkpoint resumed, session opened, inputs handled until stopped.
-    `swarmloc agent` and the launcher's `python -m agents.daemon` both end here."""
+    `swarmloc agent` and the launcher's `python -m agents.daemon` both end here (and, one
+    thread per agent, agents.host)."""
     exit_on_sigterm()
+    daemon = open_daemon(node, cfg)
+    try:
+        run_daemon(daemon)
+    except KeyboardInterrupt:
+        pass
+
+
+def open_daemon(node: Node, cfg: AgentConfig) -> AgentDaemon:
+    """The node's daemon, resumed from its checkpoint, its session and sources open (OpenError
+    saying which could not be)."""
     daemon = AgentDaemon(node, cfg)
     daemon.resume()
     try:
@@ -566,7 +720,12 @@ def serve(node: Node, cfg: AgentConfig) -> None:
     except zenoh.ZError as exc:
         raise OpenError(f"agent {node.id}: cannot open a Zenoh session ({cfg.mode}, connect {', '.join(cfg.connect)}): "
                         f"{zenoh_message(exc)}") from None
-    keys = daemon.keys
+    return daemon
+
+
+def run_daemon(daemon: AgentDaemon) -> None:
+    """An opened daemon's loop, said in the log first, until stopped; the session closed after."""
+    node, cfg, keys = daemon.node, daemon.cfg, daemon.keys
     radio = [keys.radio_rx(node.id), *([keys.radio_rx(BROADCAST)] if cfg.direct else [])]
     inputs = [*((keys.sensors(node.id),) if cfg.sensor_keys is None else cfg.sensor_keys), *(s.name for s in daemon.sources)]
     log.info("agent %s up (%s mode, connect %s, listen %s, %s radio); waiting for sensor frames on %s, radio frames "
@@ -585,8 +744,6 @@ def serve(node: Node, cfg: AgentConfig) -> None:
         log.info("agent %s: outputs.swarm is false: no estimate on %s", node.id, keys.estimate(node.id))
     try:
         daemon.run()
-    except KeyboardInterrupt:
-        pass
     finally:
         daemon.close()
 

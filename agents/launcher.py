@@ -1,4 +1,5 @@
-"""`swarmloc run`: netsim plus one agent process per platform, watched until netsim ends.
+"""`swarmloc run`: netsim plus one agent process per platform (or K agents to a process,
+agents/host.py), watched until netsim ends.
 
 The launcher owns the processes it starts. Ctrl-C, SIGTERM and SIGHUP stop them all; if the
 launcher itself dies (kill -9), a parent-death signal stops them. An agent that crashes is
@@ -9,47 +10,36 @@ checkpoint. Only netsim failing fails the run.
 
 from __future__ import annotations
 
-import ctypes
-import functools
 import itertools
 import json
+import math
 import os
+import queue
 import shutil
 import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import asdict, dataclass
 from datetime import datetime
 from pathlib import Path
 
 import typer
-from rich.console import Console
 from rich.table import Table
 
 from agents.control import DEFAULT_PORT, Failure, Registration
 from swarmloc import wire
 from swarmloc.estimators import REGISTRY
-from swarmloc.scenario import Scenario
+from swarmloc.experiment.scenario import Scenario
+from swarmloc.process import console as process_console
+from swarmloc.process import die_with_parent
 
-console = Console()
-err = Console(stderr=True, soft_wrap=True)
+console = process_console()
+err = process_console(stderr=True)
 MAX_RESTARTS = 3  # per agent: an agent that keeps crashing is left out after this
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-PR_SET_PDEATHSIG = 1
-# Resolved here, not in the forked child, where only the call itself should run.
-_prctl = ctypes.CDLL(None, use_errno=True).prctl if sys.platform.startswith("linux") else None
-
-
-def _die_with(launcher: int) -> None:
-    """preexec_fn: SIGTERM this child when the launcher dies, however it dies.
-
-    The kernel sends it when the thread that forked the child exits, so children are only
-    ever spawned from the main thread."""
-    _prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM))
-    if os.getppid() != launcher:  # the launcher died before prctl took effect
-        os._exit(1)
 
 
 def exit_status(code: int) -> str:
@@ -73,60 +63,152 @@ class Crash:
         return f"agent-{self.agent} crashed ({exit_status(self.returncode)}{when})"
 
 
-class Swarm:
-    """The processes of one run: netsim and one agent each; stopped together, whatever happens."""
+@dataclass
+class HostProc:
+    """Agents sharing one process (agents/host.py), started, killed and restarted one by one
+    through the commands on its stdin; its stdout says which of them crashed."""
 
-    def __init__(self, logs: Path):
-        self.logs = logs
+    name: str
+    ids: list[int]
+    args: list[str]
+    proc: subprocess.Popen | None = None
+    crashed: queue.SimpleQueue | None = None  # agents whose loop failed, as the host reported them
+    over: bool = False  # its process died and none of its agents is to be restarted
+
+    def command(self, line: str) -> None:
+        try:
+            self.proc.stdin.write(line + "\n")
+            self.proc.stdin.flush()
+        except (BrokenPipeError, OSError, ValueError):
+            pass  # the host is gone: check_agents reports it
+
+
+class Swarm:
+    """The processes of one run: netsim and the agents (one process each, or K to a host);
+    stopped together, whatever happens."""
+
+    def __init__(self, logs: Path, ui=console):
+        self.logs, self.ui = logs, ui
         self.netsim: subprocess.Popen | None = None
         self.agents: dict[int, subprocess.Popen] = {}
         self.agent_args: dict[int, list[str]] = {}
+        self.hosts: dict[int, HostProc] = {}  # by agent id, for agents that share a process
+        self.gone: set[int] = set()  # crashed and left out
         self.killed: set[int] = set()  # killed on purpose (a kill fault), not crashed
         self.crashes: list[Crash] = []
-        self._preexec = functools.partial(_die_with, os.getpid()) if _prctl is not None else None
+        self.left: dict[int, int | None] = {}  # agents that exited cleanly while netsim ran -> tick noticed
+        self._preexec = die_with_parent()  # children are only ever spawned from the main thread
 
-    def _spawn(self, name: str, args: list[str]) -> subprocess.Popen:
+    def _spawn(self, name: str, args: list[str], commands: bool = False) -> subprocess.Popen:
         with open(self.logs / f"{name}.log", "ab") as log:
-            return subprocess.Popen([sys.executable, *args], stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                    start_new_session=True, preexec_fn=self._preexec)
+            return subprocess.Popen([sys.executable, *args], stdout=subprocess.PIPE if commands else log,
+                                    stderr=log, stdin=subprocess.PIPE if commands else subprocess.DEVNULL,
+                                    text=commands or None, start_new_session=True, preexec_fn=self._preexec)
 
     def start_netsim(self, args: list[str]) -> subprocess.Popen:
         self.netsim = self._spawn("netsim", args)
         return self.netsim
 
+    def add_host(self, host: HostProc) -> None:
+        for aid in host.ids:
+            self.hosts[aid] = host
+        self.start_host(host)
+
+    def start_host(self, host: HostProc) -> None:
+        """(Re)start a host's process: its agents killed by a fault or left out stay down."""
+        hold = [x for aid in host.ids if aid in self.killed | self.gone for x in ("--hold", str(aid))]
+        host.proc = self._spawn(host.name, [*host.args, *hold], commands=True)
+        host.crashed = queue.SimpleQueue()
+
+        def read(proc, crashed):
+            for line in proc.stdout:
+                verb, _, aid = line.strip().partition(" ")
+                if verb == "crashed" and aid.isdigit():
+                    crashed.put(int(aid))
+
+        threading.Thread(target=read, args=(host.proc, host.crashed), daemon=True).start()
+
     def start_agent(self, aid: int) -> None:
-        self.agents[aid] = self._spawn(f"agent-{aid}", self.agent_args[aid])
+        if aid in self.hosts:
+            self.hosts[aid].command(f"start {aid}")
+        else:
+            self.agents[aid] = self._spawn(f"agent-{aid}", self.agent_args[aid])
+
+    def _crashed(self, aid: int, returncode: int, tick: int | None, restart: bool, log: str) -> bool:
+        """Report agent aid's crash; True if it is to be started again."""
+        again = restart and sum(c.agent == aid and c.restarted for c in self.crashes) < MAX_RESTARTS
+        crash = Crash(aid, returncode, again, tick)
+        self.crashes.append(crash)
+        tail = self.tail(log)
+        err.print(f"[yellow]{crash.describe()}; "
+                  f"{'restarting it from its checkpoint' if again else 'the run goes on without it'}[/]")
+        if tail:
+            err.print(tail, markup=False, highlight=False)
+        if not again:
+            self.gone.add(aid)
+        return again
 
     def check_agents(self, tick: int | None, restart: bool) -> None:
         """Report agents that died on their own since the last check; restart them if asked."""
         for aid, p in list(self.agents.items()):
-            if aid in self.killed or p.poll() in (None, 0):
+            if aid in self.killed or p.poll() is None:
                 continue
-            again = restart and sum(c.agent == aid and c.restarted for c in self.crashes) < MAX_RESTARTS
-            crash = Crash(aid, p.returncode, again, tick)
-            self.crashes.append(crash)
-            tail = self.tail(f"agent-{aid}")
-            err.print(f"[yellow]{crash.describe()}; "
-                      f"{'restarting it from its checkpoint' if again else 'the run goes on without it'}[/]")
-            if tail:
-                err.print(tail, markup=False, highlight=False)
-            if again:
+            if p.returncode == 0:  # a clean exit: netsim's stop at the end, or a stop clock before it
+                # Said once netsim is done (_ended_early), when it is known which: every normal
+                # run's agents exit while netsim writes its results.
+                if self.netsim is not None and self.netsim.poll() is None and aid not in self.left:
+                    self.left[aid] = tick
+                continue
+            if self._crashed(aid, p.returncode, tick, restart, f"agent-{aid}"):
                 self.start_agent(aid)
             else:
                 del self.agents[aid]
+        for host in {id(h): h for h in self.hosts.values()}.values():
+            while not host.crashed.empty():  # one agent's loop failed; its hostmates go on
+                aid = host.crashed.get()
+                if aid not in self.killed and self._crashed(aid, 1, tick, restart, host.name):
+                    host.command(f"start {aid}")
+            if host.over or host.proc.poll() in (None, 0):
+                continue
+            # The whole process died: each of its agents crashed.
+            down = [aid for aid in host.ids if aid not in self.killed | self.gone]
+            again = [aid for aid in down if self._crashed(aid, host.proc.returncode, tick, restart, host.name)]
+            if again:
+                self.start_host(host)
+            else:
+                host.over = True
 
-    def on_event(self, kind: str, aid: int) -> None:
-        """netsim's kill/restart faults: the launcher owns the processes, so it carries them out."""
+    def on_event(self, kind: str, aid: int, gate: Gate | None = None) -> None:
+        """netsim's kill/restart faults: the launcher owns the processes, so it carries them out.
+        A restart of an agent that is running is refused: a second process of one agent stalls
+        the run (issue 26, finding 1)."""
+        if aid in self.hosts:
+            host = self.hosts[aid]
+            if kind == "kill" and aid not in self.killed | self.gone and host.proc.poll() is None:
+                self.killed.add(aid)
+                host.command(f"kill {aid}")
+                self.ui.print(f"[yellow]killed agent-{aid} (fault)[/]")
+            elif kind == "restart" and aid in self.killed:
+                self.killed.discard(aid)
+                host.command(f"start {aid}")
+                self.ui.print(f"[yellow]restarted agent-{aid} (fault); it resumes from its checkpoint[/]")
+            elif kind == "restart" and gate is not None:
+                gate.refuse("events", "agent-running", f"restart of agent-{aid}")
+            return
         p = self.agents.get(aid)
+        if kind == "restart" and p is not None and p.poll() is None:
+            if gate is not None:
+                gate.refuse("events", "agent-running", f"restart of agent-{aid}")
+            return
         if kind == "kill" and p is not None and p.poll() is None:
             self.killed.add(aid)
             p.kill()
             p.wait()
-            console.print(f"[yellow]killed agent-{aid} (fault)[/]")
+            self.ui.print(f"[yellow]killed agent-{aid} (fault)[/]")
         elif kind == "restart" and aid in self.agent_args:
             self.killed.discard(aid)
             self.start_agent(aid)
-            console.print(f"[yellow]restarted agent-{aid} (fault); it resumes from its checkpoint[/]")
+            self.ui.print(f"[yellow]restarted agent-{aid} (fault); it resumes from its checkpoint[/]")
 
     def netsim_failed(self, what: str) -> Failure:
         code = self.netsim.returncode
@@ -142,7 +224,8 @@ class Swarm:
         """Stop every process; signals are ignored meanwhile, so a second Ctrl-C leaves no orphans."""
         previous = {s: signal.signal(s, signal.SIG_IGN) for s in STOP_SIGNALS}
         try:
-            procs = [p for p in (self.netsim, *self.agents.values()) if p is not None]
+            hosts = [h.proc for h in {id(h): h for h in self.hosts.values()}.values()]
+            procs = [p for p in (self.netsim, *self.agents.values(), *hosts) if p is not None]
             for p in procs:
                 if p.poll() is None:
                     p.send_signal(signal.SIGTERM)
@@ -156,6 +239,58 @@ class Swarm:
         finally:
             for s, handler in previous.items():
                 signal.signal(s, handler)
+
+
+class Gate:
+    """What the launcher believes of what it hears: a frame netsim sealed (docs/security.md),
+    of the type its key carries; everything else refused and counted by key and reason
+    (metrics.json `launcher.rejected`). Anyone on the router can publish on the swarm's keys."""
+
+    TYPES = {"events": "event", "clock": "clock"}
+
+    def __init__(self, keys: Path | None):
+        from collections import Counter
+
+        from swarmloc.wire import auth
+
+        self.opener = None if keys is None else auth.Opener(auth.Keyring.load(keys))
+        self.rejected: dict[str, Counter] = {k: Counter() for k in self.TYPES}
+
+    def refuse(self, kind: str, reason: str, detail: str = "") -> None:
+        self.rejected[kind][reason] += 1
+        if self.rejected[kind][reason] <= 3:
+            err.print(f"[yellow]refused a frame on {kind} ({reason}{': ' + detail if detail else ''})[/]", highlight=False)
+
+    def open(self, kind: str, data: bytes | None):
+        """The body of an authentic frame of netsim's on `kind`, or None (refused and counted)."""
+        from agents.daemon import NETSIM_ID
+        from swarmloc.wire import auth
+
+        # Cheap refusals first: size, envelope, type and sender before any MAC, so that a frame
+        # on the wrong key neither costs a MAC nor marks its counter as seen (its original, on
+        # its own key, must still open).
+        if data is None:  # wire.bounded: above the ceiling, never copied out of Zenoh
+            return self.refuse(kind, "oversize")
+        try:
+            env = wire.decode(data, body=False)
+        except wire.WireError as exc:
+            return self.refuse(kind, "malformed", str(exc))
+        if env.type != self.TYPES[kind]:
+            return self.refuse(kind, "wrong-type", env.type)
+        if env.src != NETSIM_ID:
+            return self.refuse(kind, "src-mismatch", f"src {env.src}")
+        if self.opener is not None:
+            try:
+                data, _ = self.opener.open(data, NETSIM_ID)
+            except auth.AuthError as exc:
+                return self.refuse(kind, f"auth-{exc.reason}", str(exc))
+        try:
+            return wire.decode(data).body
+        except wire.WireError as exc:
+            return self.refuse(kind, "malformed", str(exc))
+
+    def record(self) -> dict:
+        return {"rejected": {k: dict(c) for k, c in self.rejected.items() if c}}
 
 
 class Interrupted(KeyboardInterrupt):
@@ -244,8 +379,14 @@ def make_out(out: Path | None, name: str) -> Path:
 # ------------------------------------------------------------------------------------ run
 
 
-def run_swarm(sc: Scenario, out: Path | None, swarm: str, port: int | None, plots: bool, force: bool,
-              restart_crashed: bool) -> Path:
+def run_swarm(sc: Scenario, out: Path | None, swarm: str | None, port: int | None, plots: bool, force: bool,
+              restart_crashed: bool, as_json: bool = False, netsim_args: tuple[str, ...] = (),
+              per_process: int = 1) -> Path:
+    """Run the swarm; swarm None: `default`, or the first of default-2, default-3, ... that no
+    other run holds. as_json: metrics.json on stdout at the end, everything else on stderr.
+    `netsim_args`: netsim's own options (--no-record, --view, --ros2-...). per_process: agents
+    that share one process (agents/host.py); 1: a process each."""
+    ui = err if as_json else console
     check_out(out, force)
     port = pick_port(port)
     endpoint = f"tcp/127.0.0.1:{port}"
@@ -253,33 +394,87 @@ def run_swarm(sc: Scenario, out: Path | None, swarm: str, port: int | None, plot
     # started with SIGINT ignored (a background job of a non-interactive shell, as under CI).
     for s in STOP_SIGNALS:
         signal.signal(s, _interrupt)
-    registration = Registration(swarm, endpoint=endpoint, scenario=sc.name)
+    if swarm is not None:
+        registration = Registration(swarm, endpoint=endpoint, scenario=sc.name)
+    else:
+        registration, taken = Registration.first_free("default", endpoint=endpoint, scenario=sc.name)
+        swarm = registration.swarm
+        if taken:
+            held = ", ".join(f"'{t['swarm']}' (launcher pid {t['pid']})" for t in taken)
+            ui.print(f"[yellow]{held} already running: this run is swarm '{swarm}' on {endpoint}; give `--swarm "
+                     f"{swarm}` to status, inject, faults, clear and stop[/]")
     try:
         out = make_out(out, sc.name)
         keys = _run_keys(sc, swarm, out)
         registration.update(out=str(out.resolve()), keys=str(keys.resolve()))
-        procs = Swarm(out / "logs")
+        procs = Swarm(out / "logs", ui)
+        gate = Gate(keys)
+        failure = None
         try:
-            _start(procs, sc, out, swarm, endpoint, plots, restart_crashed, keys)
-            _watch(procs, sc, swarm, endpoint, restart_crashed)
+            _start(procs, sc, out, swarm, endpoint, plots, restart_crashed, keys, ui, netsim_args, per_process)
+            _watch(procs, sc, swarm, endpoint, restart_crashed, ui, gate)
         except Interrupted as exc:
-            raise Failure(f"interrupted ({signal.Signals(exc.signum).name}): stopped every process of the swarm; "
-                          f"logs in {out / 'logs'}", 128 + exc.signum) from None
+            failure = Failure(f"interrupted ({signal.Signals(exc.signum).name}): stopped every process of the swarm; "
+                              f"logs in {out / 'logs'}", 128 + exc.signum)
         finally:
             procs.stop()  # before the error above is shown
     finally:
         registration.remove()
-    if procs.netsim.returncode != 0:
-        raise procs.netsim_failed("netsim failed")
-    _record_crashes(out, procs.crashes)
-    print_summary(out, procs.crashes)
+    if failure is None and procs.netsim.returncode != 0:
+        failure = procs.netsim_failed("netsim failed")
+    if failure is not None:
+        raise _salvage(out, procs, gate, failure, plots, ui)
+    _record_launcher(out, procs.crashes, gate)
+    if as_json:
+        typer.echo((out / "metrics.json").read_text())
+    print_summary(out, procs.crashes, ui)
+    early = _ended_early(out, sc, procs)
+    if early:
+        raise Failure(early, 1)
     return out
+
+
+def _salvage(out: Path, procs: Swarm, gate: Gate, failure: Failure, plots: bool, ui) -> Failure:
+    """A run that netsim did not finish: its results rebuilt from the recording, up to the last
+    finished tick, so that nothing computed is lost; the failure, saying how far the run got."""
+    from swarmloc.experiment.recording import RecordingError
+    from swarmloc.experiment.rundir import RECORDING, rebuild_run
+
+    if (out / "metrics.json").is_file() or not (out / RECORDING).is_file():
+        return failure
+    previous = {s: signal.signal(s, signal.SIG_IGN) for s in STOP_SIGNALS}  # a second Ctrl-C must not cut it
+    try:
+        m = rebuild_run(out, plots, why=str(failure).split(";")[0])
+        _record_launcher(out, procs.crashes, gate)
+    except (RecordingError, ValueError) as exc:
+        return Failure(f"{failure}; nothing to rebuild the results from ({exc})", failure.exit_code)
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    last = m.get("ended_early", {}).get("last_tick", m["ticks"] - 1)
+    return Failure(f"{failure}; the run ended after tick {last}: metrics.json, estimates and plots rebuilt from "
+                   f"{out / RECORDING} up to that tick", failure.exit_code)
+
+
+def _ended_early(out: Path, sc: Scenario, procs: Swarm) -> str | None:
+    """Why a run that netsim finished is not whole, or None: it stopped short of its last tick
+    though nobody asked it to, or agents stopped on a stop clock while netsim went on."""
+    m = json.loads((out / "metrics.json").read_text())
+    said = []
+    if m["ticks"] < sc.clock.steps + 1 and "stopped_at_tick" not in m:
+        said.append(f"netsim ended after tick {m['ticks'] - 1} of {sc.clock.steps}")
+    for aid, k in sorted(procs.left.items()):
+        if k is not None and k >= m["ticks"] - 1:  # at the run's last tick: netsim's own stop
+            continue
+        said.append(f"agent-{aid} exited on its own" + ("" if k is None else f" at tick {k}") +
+                    " while netsim went on (a stop it was sent?)")
+    return "the run ended early: " + "; ".join(said) if said else None
 
 
 def _run_keys(sc: Scenario, swarm: str, out: Path) -> Path:
     """The key directory that seals the run's frames: the scenario's (its swarm must be this
     run's), or throwaway keys made for the run in logs/keys (docs/security.md)."""
-    from swarmloc.auth import KEY_FILE, Keyring
+    from swarmloc.wire.auth import KEY_FILE, Keyring
 
     if sc.security.keys is not None:
         path = Path(sc.security.keys).expanduser()
@@ -298,97 +493,209 @@ def _run_keys(sc: Scenario, swarm: str, out: Path) -> Path:
 
 
 def _start(procs: Swarm, sc: Scenario, out: Path, swarm: str, endpoint: str, plots: bool, restart_crashed: bool,
-           keys: Path) -> None:
+           keys: Path, ui=console, netsim_args: tuple[str, ...] = (), per_process: int = 1) -> None:
     scenario_file = out / "logs" / "scenario.input.yaml"
     scenario_file.write_text(sc.to_yaml())
     stop = "" if sc.world.stop_distance is None else \
         f" at most, stopping when an agent is within {sc.world.stop_distance:g} m of a target,"
-    console.print(f"[bold]swarmloc run[/] {sc.name}: {len(sc.world.agents)} agents, {sc.clock.steps + 1} ticks (0..{sc.clock.steps}){stop} "
+    ground = [a.id for a in sc.world.agents if not a.localized]
+    agents = f"{len(sc.world.agents)} agents" + (f" ({len(sc.localized_ids)} localized and ground station "
+                                                 f"{', '.join(map(str, ground))})" if ground else "")
+    ui.print(f"[bold]swarmloc run[/] {sc.name}: {agents}, {sc.clock.steps + 1} ticks (0..{sc.clock.steps}){stop} "
                   f"of {sc.clock.dt:g} s, {sc.clock.mode}, seed {sc.seed}, Zenoh router {endpoint}, swarm '{swarm}'")
     net = procs.start_netsim(["-m", "netsim", str(scenario_file), "--swarm", swarm, "--listen", endpoint, "--out", str(out),
                               "--keys", str(keys),
-                              *([] if plots else ["--no-plots"]), *(["--await-rejoin"] if restart_crashed else [])])
-    _wait_listening(int(endpoint.rsplit(":", 1)[1]), net)
-    if net.poll() is not None:
-        raise procs.netsim_failed("netsim failed to start")
+                              *([] if plots else ["--no-plots"]), *(["--await-rejoin"] if restart_crashed else []),
+                              *netsim_args])
+    if not _wait_listening(int(endpoint.rsplit(":", 1)[1]), net):
+        if net.poll() is not None:
+            raise procs.netsim_failed("netsim failed to start")
+        tail = procs.tail("netsim")
+        raise Failure(f"netsim did not open its Zenoh port {endpoint} within {NETSIM_START_S:.0f} s"
+                      + (f"; its last log lines:\n{tail}" if tail else ""), 1)
     from swarmloc.estimators import REGISTRY
 
     info = REGISTRY[sc.estimator.name]
     settings = info.settings(sc.estimator.params)
+    specs = {}
     for a in sc.agent_ids:
         # The agent gets its node as plain values, not the scenario: it never parses one.
-        spec = out / "logs" / f"agent-{a}.node.json"
-        spec.write_text(info.node_spec(sc, a, settings).dumps())
-        procs.agent_args[a] = ["-m", "agents.daemon", "--id", str(a), "--spec", str(spec), "--swarm", swarm,
-                               "--connect", endpoint, "--state-file", str(out / "logs" / f"agent-{a}.state.npy"),
-                               "--keys", str(keys)]
-        procs.start_agent(a)
+        specs[a] = out / "logs" / f"agent-{a}.node.json"
+        specs[a].write_text(info.node_spec(sc, a, settings).dumps())
+    if per_process == 1:
+        for a in sc.agent_ids:
+            procs.agent_args[a] = ["-m", "agents.daemon", "--id", str(a), "--spec", str(specs[a]), "--swarm", swarm,
+                                   "--connect", endpoint, "--state-file", str(out / "logs" / f"agent-{a}.state.npy"),
+                                   "--keys", str(keys)]
+            procs.start_agent(a)
+        return
+    ids = list(sc.agent_ids)
+    for first in range(0, len(ids), per_process):
+        group = ids[first:first + per_process]
+        procs.add_host(HostProc(f"host-{group[0]}-{group[-1]}", group, [
+            "-m", "agents.host", *(x for a in group for x in ("--agent", f"{a}={specs[a]}")), "--swarm", swarm,
+            "--connect", endpoint, "--state-dir", str(out / "logs"), "--keys", str(keys)]))
 
 
-def _wait_listening(port: int, proc: subprocess.Popen, timeout: float = 20.0) -> None:
+NETSIM_START_S = 120.0
+"""How long netsim may take to open its Zenoh port. It needs 1-2 s on an idle machine, but its
+imports alone took 19 s beside a load of 25; slow is not dead, so this is generous."""
+
+
+def _wait_listening(port: int, proc: subprocess.Popen, timeout: float = NETSIM_START_S) -> bool:
+    """True once netsim listens on port; False if it ended or did not listen within timeout."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if proc.poll() is not None:
-            return
+            return False
         with socket.socket() as s:
             if s.connect_ex(("127.0.0.1", port)) == 0:
-                return
+                return True
         time.sleep(0.05)
+    return False
 
 
-def _watch(procs: Swarm, sc: Scenario, swarm: str, endpoint: str, restart_crashed: bool) -> None:
-    """Progress from netsim's clock, kill/restart faults carried out, crashes reported; until netsim ends."""
+def _watch(procs: Swarm, sc: Scenario, swarm: str, endpoint: str, restart_crashed: bool, ui=console,
+           gate: Gate | None = None) -> None:
+    """Progress from netsim's clock, kill/restart faults carried out, crashes reported; until netsim ends.
+    Only frames netsim sealed count (`gate`): anyone can publish on the swarm's keys."""
     import queue
 
     import zenoh
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
 
     ticks: queue.SimpleQueue = queue.SimpleQueue()
     events: queue.SimpleQueue = queue.SimpleQueue()
     session = zenoh.open(zenoh.Config.from_json5(wire.zenoh_config("client", connect=[endpoint])))
-    sub = session.declare_subscriber(wire.Keys(swarm).clock, lambda s: ticks.put(s.payload.to_bytes()))
-    sub_events = session.declare_subscriber(wire.Keys(swarm).events, lambda s: events.put(s.payload.to_bytes()))
-    tick = None
+    sub = session.declare_subscriber(wire.Keys(swarm).clock, lambda s: ticks.put(wire.bounded(s.payload)))
+    sub_events = session.declare_subscriber(wire.Keys(swarm).events, lambda s: events.put(wire.bounded(s.payload)))
+    gate = gate or Gate(None)
+    tick, now_t = None, 0.0
+    drops = _DropWatch(swarm, endpoint) if sc.clock.mode == "realtime" else None
+    plain = _PlainProgress(ui, sc.clock.steps + 1)
     try:
         with Progress(TextColumn("[progress.description]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                      TextColumn("ticks"), TimeElapsedColumn(), TimeRemainingColumn(), console=console, transient=False) as bar:
+                      TextColumn("ticks"), TimeElapsedColumn(), TimeRemainingColumn(), console=ui, transient=False) as bar:
             task = bar.add_task("waiting for agents", total=sc.clock.steps + 1)
             while procs.netsim.poll() is None:
+                if drops is not None:
+                    warning = drops.check()
+                    if warning:
+                        bar.console.print(f"[yellow]t = {now_t:.1f} s: {warning}[/]")
                 while not events.empty():
-                    try:
-                        ev = wire.decode(events.get_nowait()).body
-                        procs.on_event(ev.kind, ev.node)
-                    except wire.WireError:
-                        pass
+                    ev = gate.open("events", events.get_nowait())
+                    if ev is not None:
+                        procs.on_event(ev.kind, ev.node, gate)
                 procs.check_agents(tick, restart_crashed)
-                latest = None
+                c = None
                 try:
-                    latest = ticks.get(timeout=0.1)
+                    c = gate.open("clock", ticks.get(timeout=0.1)) or c
                     while True:
-                        latest = ticks.get_nowait()
+                        c = gate.open("clock", ticks.get_nowait()) or c
                 except queue.Empty:
                     pass
-                if latest is not None:
-                    try:
-                        c = wire.decode(latest).body
-                    except wire.WireError:
-                        continue
-                    tick = c.k
+                if c is not None:
+                    tick, now_t = c.k, c.t
                     bar.update(task, completed=c.k + 1, description=f"t = {c.t:7.1f} s")
+                    plain.update(c.k + 1, c.t)
         procs.check_agents(tick, restart=False)  # the run is over: a crash now is recorded, not undone
     finally:
+        if drops is not None:
+            drops.close()
         sub.undeclare()
         sub_events.undeclare()
         session.close()
 
 
+class _PlainProgress:
+    """Off a terminal rich draws no bar until the end: a plain line now and then instead."""
+
+    EVERY_S = 10.0
+
+    def __init__(self, ui, total: int):
+        self.ui, self.total = ui, total
+        self.start = self.last = time.monotonic()
+
+    def update(self, done: int, t: float) -> None:
+        now = time.monotonic()
+        if self.ui.is_terminal or now - self.last < self.EVERY_S:
+            return
+        self.last = now
+        self.ui.print(f"t = {t:.1f} s: {done}/{self.total} ticks, {now - self.start:.0f} s elapsed", highlight=False)
+
+
+class _DropWatch:
+    """Real time waits for nobody: when the machine cannot keep up, UKF-DCL's chains do not
+    finish within their tick and their measurements are dropped. This asks the agents for their
+    counters every few seconds (a thread of its own: each round waits up to a second) and says
+    so while the run goes, when the share dropped since the last round is large."""
+
+    EVERY_S = 5.0
+    QUIET_S = 30.0  # one warning at most this often
+
+    def __init__(self, swarm: str, endpoint: str):
+        import queue
+        import threading
+
+        self.rounds: queue.SimpleQueue = queue.SimpleQueue()
+        self.stop = threading.Event()
+        self.last = (0, 0)  # dropped, used over the swarm at the last round
+        self.warned = -math.inf
+        self.thread = threading.Thread(target=self._poll, args=(swarm, endpoint), name="drop-watch", daemon=True)
+        self.thread.start()
+
+    def _poll(self, swarm: str, endpoint: str) -> None:
+        from agents.control import ControlClient
+
+        try:
+            with ControlClient(swarm, [endpoint]) as ctl:
+                while not self.stop.wait(self.EVERY_S):
+                    self.rounds.put(ctl.agents().stats)
+        except Exception:  # a warning is a courtesy: the run must not depend on it
+            return
+
+    def check(self) -> str | None:
+        import queue
+
+        latest = None
+        try:
+            while True:
+                latest = self.rounds.get_nowait()
+        except queue.Empty:
+            pass
+        stats = [s for s in (latest or {}).values() if "measurements_dropped" in s]
+        if not stats:
+            return None
+        now = (sum(s["measurements_dropped"] for s in stats), sum(s.get("measurements_used", 0) for s in stats))
+        dropped, used = now[0] - self.last[0], now[1] - self.last[1]
+        self.last = now
+        if dropped + used < 20 or dropped / (dropped + used) <= DROP_WARN or time.monotonic() - self.warned < self.QUIET_S:
+            return None
+        self.warned = time.monotonic()
+        return (f"the agents dropped {dropped / (dropped + used):.0%} of their measurements in the last "
+                f"{self.EVERY_S:g} s (chains that did not finish within their tick): this machine is not keeping up "
+                "with real time. Lower --speed, or run in lockstep (run --lockstep, replay without --realtime), which waits")
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(timeout=3.0)
+
+
 # ------------------------------------------------------------------------------------ results
 
 
-def _record_crashes(out: Path, crashes: list[Crash]) -> None:
+def _record_launcher(out: Path, crashes: list[Crash], gate: Gate) -> None:
     path = out / "metrics.json"
     m = json.loads(path.read_text())
     m["crashes"] = [{k: v for k, v in asdict(c).items() if k != "tick"} for c in crashes]
+    m["launcher"] = gate.record()
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(m, indent=2))
     os.replace(tmp, path)
@@ -432,6 +739,7 @@ def pose_table(m: dict, algs: list[str]) -> Table:
     swarm whose states carry a heading (a replay's robots)."""
     t = Table(title="Per agent: position RMSE (m), heading RMSE (rad), NEES (3 dof when consistent)", show_lines=True)
     t.add_column("estimator")
+    t.add_column("")
     for aid in m["agents"]:
         t.add_column(f"A{aid}", justify="right")
     t.add_column("all", justify="right")
@@ -445,18 +753,125 @@ def pose_table(m: dict, algs: list[str]) -> Table:
 
     for a in algs:
         e = m["estimators"][a]
-        t.add_row(a, *(cell(e["agents"][str(aid)]) for aid in m["agents"]), cell(e))
+        t.add_row(a, "position RMSE (m)\nheading RMSE (rad)\nNEES", *(cell(e["agents"][str(aid)]) for aid in m["agents"]),
+                  cell(e))
     return t
 
 
-def print_summary(out: Path, crashes: list[Crash]) -> None:
+ROLES = {"agents": "what the agent processes ran",
+         "baseline": "no cooperation, or a naive one: what cooperating must beat",
+         "reference": "the centralized filter over the whole swarm, computed offline from the same sensor stream: what "
+                      "a distributed one should match",
+         "offline": "computed offline from the same sensor stream"}
+# Radio drop reasons (metrics.json radio.dropped; docs/radio.md) in words.
+DROPS = {"distance": "out of radio range", "sinr": "SINR too low", "collision": "collided", "half-duplex":
+         "the receiver was sending", "queue": "queue full", "fault": "on a cut link", "partition": "across a partition",
+         "radio-off": "radio off", "jammed": "jammed", "loss": "extra loss (fault)", "down": "to or from an agent down"}
+WORSE = 1.1  # one run's mean error this much above a baseline's is worth a word; closer is one seed's noise
+DROP_WARN = 0.1  # in real time, a larger share of measurements dropped is the machine not keeping up
+
+
+def roles(m: dict, algs: list[str]) -> dict[str, str]:
+    """Each estimator's part in the run: what the agents ran, a baseline, the reference."""
+    out = {}
+    for a in algs:
+        info = REGISTRY.get(a)
+        parts = ["agents" if a == m.get("estimator") else "", info.role if info else ""]
+        out[a] = ", ".join(p for p in parts if p) or "offline"
+    return out
+
+
+def _m(v: float) -> str:
+    return f"{v:.3g} m"
+
+
+def summary_notes(m: dict, algs: list[str]) -> list[str]:
+    """What the tables do not say by themselves, in words: the columns' roles, estimators that
+    gave the same estimates, one doing worse than a baseline (and whether the formation tells
+    why), the ground stations, the radio's drops, measurements the agents dropped."""
+    role = roles(m, algs)
+    est = m["estimators"]
+    used = sorted({r for a in algs for r in role[a].split(", ")}, key=list(ROLES).index)
+    notes = ["; ".join(f"{r}: {ROLES[r]}" for r in used) + "."]
+    for same in m.get("identical", []):
+        a, b = same["estimators"]
+        d = same["max_difference_m"]
+        notes.append(f"{a} and {b} gave the same position estimates ({'exactly' if d == 0 else f'to {d:.1g} m'}): their "
+                     f"columns are equal, and the plots draw {b} dashed over {a}.")
+    copies = {s["estimators"][1] for s in m.get("identical", [])}  # said once, of the first of a pair
+    noted: set[str] = set()
+    for base in (a for a in algs if "baseline" in role[a] and a not in copies and est[a]["mean_error_m"] is not None):
+        worse = [a for a in algs if "baseline" not in role[a] and a not in copies | noted
+                 and est[a]["mean_error_m"] is not None and est[a]["mean_error_m"] > WORSE * est[base]["mean_error_m"]]
+        noted.update(worse)
+        for a in worse:
+            text = (f"{a} ({role[a]}) is worse than the baseline {base} here: {_m(est[a]['mean_error_m'])} against "
+                    f"{_m(est[base]['mean_error_m'])} on average.")
+            fa, fb = est[a].get("formation_rmse_m"), est[base].get("formation_rmse_m")
+            if fa is not None and fb is not None and fa < fb:
+                text += (f" Its formation is better ({_m(fa)} against {_m(fb)} RMS once the swarm's common shift and "
+                         "turn are taken out): measurements among the agents fix the swarm's shape, not where it is or "
+                         "which way it is turned; without an absolute measurement (GNSS, landmarks) that common part is "
+                         "not corrected, and in one run it can drift further than the agents' own dead reckoning.")
+            notes.append(text)
+    ground = m.get("ground_stations") or []
+    if ground:
+        ids = ", ".join(map(str, ground))
+        notes.append(f"agent{'s' if len(ground) > 1 else ''} {ids}: ground station{'s' if len(ground) > 1 else ''} "
+                     "(a fusion centre's process); no position of its own to estimate, so no row.")
+    r = m.get("radio", {})
+    dropped = r.get("dropped") or {}
+    why = ", ".join(f"{n} {DROPS.get(k, k)}" for k, n in sorted(dropped.items(), key=lambda kv: -kv[1]))
+    if m.get("wall_time_s") is None:  # rebuilt from the recording: no wall time, no radio counts
+        notes.append(f"{m['ticks']} ticks, rebuilt from {m.get('rebuilt_from', 'the recording')}")
+    else:
+        notes.append(f"{m['ticks']} ticks in {m['wall_time_s']:.1f} s ({m['ticks_per_s']:.0f} ticks/s); radio: "
+                     f"{r.get('delivered', 0)} frames delivered, " + (f"{sum(dropped.values())} dropped ({why})"
+                                                                         if dropped else "none dropped"))
+    if m.get("ended_early"):
+        e = m["ended_early"]
+        notes.append(f"[red]the run ended early: {e['why']}; ticks 0..{e['last_tick']} of {e['ticks_planned']}[/]")
+    notes.extend(measurement_drops(m))
+    if "error" in m.get("pcrb", {}):
+        notes.append(f"[yellow]no PCRB for this run ({m['pcrb']['error']}): the numbers above stand, without the bound "
+                     "beside them.[/]")
+    return notes
+
+
+def measurement_drops(m: dict, realtime: bool | None = None) -> list[str]:
+    """The measurements the agents' estimator dropped (those with `measurements_dropped` in their
+    stats: UKF-DCL), in words; in real time a large share is the machine falling behind."""
+    stats = [s for s in (m.get("agent_stats") or {}).values() if "measurements_dropped" in s]
+    dropped = sum(s["measurements_dropped"] for s in stats)
+    total = dropped + sum(s.get("measurements_used", 0) for s in stats)
+    if not dropped:
+        return []
+    realtime = m.get("transport") == "zenoh-realtime" if realtime is None else realtime
+    share = dropped / total
+    text = (f"the agents ({m.get('estimator')}) dropped {dropped} of their {total} measurements ({share:.0%}): "
+            "chains that did not finish within their tick, or to platforms out of reach")
+    if realtime and share > DROP_WARN:
+        return [f"[yellow]{text}. In real time that is the machine not keeping up: the results are those of a filter "
+                "that saw fewer measurements. Lower --speed, or run in lockstep (run --lockstep, replay without "
+                "--realtime), which waits.[/]"]
+    return [text + "."]
+
+
+def print_summary(out: Path, crashes: list[Crash], ui=console) -> None:
     m = json.loads((out / "metrics.json").read_text())
     algs = REGISTRY.order(m["estimators"])
-    t = Table(title=f"Position error (m), {m['scenario']} seed {m['seed']}")
+    role = roles(m, algs)
+    pcrb = m.get("pcrb", {}).get("rms_m")  # the run's posterior Cramér-Rao bound (swarmloc/experiment/bounds.py)
+    t = Table(title=f"Position error (m), {m['scenario']} seed {m['seed']}"
+              + ("; RMSE / PCRB: 1 is the best any estimator can do on average" if pcrb else ""))
     t.add_column("agent")
-    for a in algs:  # two-line headers: a long estimator name does not widen two columns
-        t.add_column(f"{a}\nmean", justify="right")
-        t.add_column(f"{a}\nfinal", justify="right")
+    for a in algs:  # headers over lines: a long estimator name does not widen two columns
+        t.add_column(f"{a}\n{role[a]}\nmean", justify="right")
+        t.add_column(f"{a}\n{role[a]}\nfinal", justify="right")
+        if pcrb:
+            t.add_column(f"{a}\n{role[a]}\nRMSE / PCRB", justify="right")
+    if pcrb:
+        t.add_column("PCRB\n\nrms", justify="right")
 
     def fmt(v):
         return "-" if v is None else f"{v:.3f}" if abs(v) < 1 else f"{v:.2f}"
@@ -465,20 +880,22 @@ def print_summary(out: Path, crashes: list[Crash]) -> None:
         row = [f"A{aid}"]
         for a in algs:
             e = m["estimators"][a]["agents"][aid]
-            row += [fmt(e["mean_error_m"]), fmt(e["final_error_m"])]
-        t.add_row(*row)
-    t.add_row("all", *sum(([fmt(m["estimators"][a]["mean_error_m"]), ""] for a in algs), []), style="bold")
-    console.print(t)
-    console.print(consistency_table(m, algs))
+            row += [fmt(e["mean_error_m"]), fmt(e["final_error_m"])] + ([fmt(e.get("rmse_over_pcrb"))] if pcrb else [])
+        t.add_row(*row, *([fmt(pcrb.get(aid))] if pcrb else []))
+    t.add_row("all", *sum(([fmt(m["estimators"][a]["mean_error_m"]), ""]
+                           + ([fmt(m["estimators"][a].get("rmse_over_pcrb"))] if pcrb else []) for a in algs), []),
+              *([""] if pcrb else []), style="bold")
+    ui.print(t)
+    ui.print(consistency_table(m, algs))
     if any(m["estimators"][a].get("heading_rmse_rad") is not None for a in algs):
-        console.print(pose_table(m, algs))
+        ui.print(pose_table(m, algs))
     if any("targets" in m["estimators"][a] for a in algs):
-        console.print(target_table(m, algs))
-    r = m.get("radio", {})
-    console.print(f"{m['ticks']} ticks in {m['wall_time_s']:.1f} s ({m['ticks_per_s']:.0f} ticks/s); radio: "
-                  f"{r.get('delivered', 0)} frames delivered, dropped {r.get('dropped', {}) or 'none'}")
+        ui.print(target_table(m, algs))
+    for note in summary_notes(m, algs):
+        ui.print(note, highlight=False)
     for c in crashes:
         then = "restarted from its checkpoint" if c.restarted else "left out from then on (its estimates stop there)"
-        console.print(f"[yellow]{c.describe()}; {then}[/]", soft_wrap=True)
+        ui.print(f"[yellow]{c.describe()}; {then}[/]", soft_wrap=True)
     plots = ", plots/*.png" if (out / "plots").is_dir() else ""
-    console.print(f"run directory: [bold]{out}[/] (metrics.json, estimates/*.npz{plots})")
+    mcap = ", run.mcap" if (out / "run.mcap").is_file() else ""
+    ui.print(f"run directory: [bold]{out}[/] (metrics.json, estimates/*.npz{plots}{mcap})")

@@ -5,17 +5,16 @@ Usage: python benchmarks/accuracy.py     (about a minute; in-process runner, no 
 
 from __future__ import annotations
 
-
-from swarmloc import pin_blas
+from swarmloc.process import pin_blas
 
 pin_blas()  # before numpy loads
 
 import numpy as np  # noqa: E402
 
 from netsim.sim import Simulation  # noqa: E402
-from swarmloc import scenario as S  # noqa: E402
-from swarmloc.results import compute_references, metrics  # noqa: E402
-from swarmloc.runner import InProcessRunner, make_nodes  # noqa: E402
+from swarmloc.experiment import scenario as S  # noqa: E402
+from swarmloc.experiment.results import compute_references, metrics  # noqa: E402
+from swarmloc.experiment.runner import InProcessRunner, make_nodes  # noqa: E402
 
 ALGS = ["il", "ukf-dcl", "ukf-ccl"]
 

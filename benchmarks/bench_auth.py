@@ -20,15 +20,16 @@ from datetime import date
 
 from machine import cpu_model  # benchmarks/machine.py
 
-from swarmloc import pin_blas
+from swarmloc.process import pin_blas
 
 pin_blas()  # before numpy loads
 
 from netsim.sim import Simulation  # noqa: E402
-from swarmloc import auth, wire  # noqa: E402
-from swarmloc import scenario as S  # noqa: E402
+from swarmloc import wire  # noqa: E402
+from swarmloc.experiment import scenario as S  # noqa: E402
+from swarmloc.experiment.runner import make_nodes  # noqa: E402
 from swarmloc.node import Outbox  # noqa: E402
-from swarmloc.runner import make_nodes  # noqa: E402
+from swarmloc.wire import auth
 
 
 def frames_of_a_run(ticks: int) -> tuple[list[bytes], float]:
@@ -84,6 +85,17 @@ def main() -> None:
         for d in sealed:
             opener.open(d)
 
+    # Per-member identity (issue 26), measured before it is built: an Ed25519 signature from
+    # `cryptography` over the same bytes the HMAC covers, signed by the sender, verified by each
+    # receiver; the frame carries 64 bytes of signature instead of a 16-byte tag.
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+
+    member = Ed25519PrivateKey.generate()
+    public = member.public_key()
+    signed = [(f, member.sign(f)) for f in frames]
+    sign_us = per_frame(member.sign, frames, a.repeat)
+    verify_us = per_frame(lambda fs: public.verify(fs[1], fs[0]), signed, a.repeat)
+
     seal_us = per_frame(sealer.seal, frames, a.repeat)
     open_us = per_frame(open_all, [None], a.repeat) / len(sealed)
     tag_us = per_frame(lambda d: auth.delivery_tag(ring, 2, att, d), sealed, a.repeat)
@@ -100,8 +112,13 @@ def main() -> None:
     print(f"| open (netsim, then the receiver) | {open_us:.2f} |")
     print(f"| netsim's delivery tag | {tag_us:.2f} |")
     print(f"| wire.decode, for scale | {decode_us:.2f} |")
+    print(f"| Ed25519 sign (a member's own key) | {sign_us:.2f} |")
+    print(f"| Ed25519 verify | {verify_us:.2f} |")
+    ed_tick_us = per_tick * (sign_us + 2 * verify_us + tag_us)
     print(f"a tick's frames: {auth_tick_us:.0f} µs of authentication (seal + 2 opens + 1 delivery tag each) against "
           f"{tick_s * 1e6:.0f} µs of the estimators' work a tick in process: {100 * auth_tick_us / (tick_s * 1e6):.1f} %")
+    print(f"the same with Ed25519 signatures (sign + 2 verifies + 1 delivery tag each): {ed_tick_us:.0f} µs, "
+          f"{100 * ed_tick_us / (tick_s * 1e6):.1f} %")
 
 
 if __name__ == "__main__":

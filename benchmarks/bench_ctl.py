@@ -28,7 +28,7 @@ Markdown to stdout (and --out). One BLAS thread. Not a test.
 
 from __future__ import annotations
 
-from swarmloc import pin_blas
+from swarmloc.process import pin_blas
 
 pin_blas()  # before numpy loads
 
@@ -42,11 +42,11 @@ from datetime import datetime, timezone  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
-
 from machine import code_version, cpu_model  # noqa: E402  benchmarks/machine.py
-from swarmloc import ctl  # noqa: E402
-from swarmloc.estimators.csl_ctl import JointCslCtl, trilaterate  # noqa: E402
-from swarmloc.messages import OdometryMsg, RangeMsg, Sensors, TargetRangeMsg  # noqa: E402
+
+from swarmloc.estimators.ctl import majorization as ctl  # noqa: E402
+from swarmloc.estimators.ctl.csl_ctl import JointCslCtl, trilaterate  # noqa: E402
+from swarmloc.wire.messages import OdometryMsg, RangeMsg, Sensors, TargetRangeMsg  # noqa: E402
 
 TARGET_STD, RANGE_STD, AGENT_RANGE_STD = 10.0, 10.0, 5.0
 DT, SPEED = 0.5, 1.0

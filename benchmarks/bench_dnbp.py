@@ -27,9 +27,10 @@ import numpy as np  # noqa: E402
 
 from benchmarks.machine import code_version, cpu_model  # noqa: E402
 from netsim.channel import LogDistance  # noqa: E402
-from swarmloc import nbp, wire  # noqa: E402
-from swarmloc.estimators.dnbp import DnbpNode  # noqa: E402
-from swarmloc.messages import NbpBelief, OdometryMsg, RangeMsg, Sensors  # noqa: E402
+from swarmloc import wire  # noqa: E402
+from swarmloc.estimators.nbp import mixtures as nbp
+from swarmloc.estimators.nbp.dnbp import DnbpNode  # noqa: E402
+from swarmloc.wire.messages import NbpBelief, OdometryMsg, RangeMsg, Sensors  # noqa: E402
 
 
 def belief_of(centre: np.ndarray, M: int, rng, d: int = 2) -> NbpBelief:

@@ -33,18 +33,18 @@ from datetime import date
 
 from machine import code_version, cpu_model  # benchmarks/machine.py
 
-from swarmloc import pin_blas
+from swarmloc.process import pin_blas
 
 pin_blas()  # before numpy loads
 
 import numpy as np  # noqa: E402
 
 from netsim.sim import Simulation  # noqa: E402
-from swarmloc import scenario as S  # noqa: E402
-from swarmloc.estimators.ekf_ccl import CentralizedEkf  # noqa: E402
-from swarmloc.messages import CentreData  # noqa: E402
 from swarmloc.estimators import make_nodes  # noqa: E402
-from swarmloc.runner import InProcessRunner  # noqa: E402
+from swarmloc.estimators.ekf.ccl import CentralizedEkf  # noqa: E402
+from swarmloc.experiment import scenario as S  # noqa: E402
+from swarmloc.experiment.runner import InProcessRunner  # noqa: E402
+from swarmloc.wire.messages import CentreData  # noqa: E402
 
 clock = time.perf_counter
 GNSS_HALF = {"goel10": [3, 5, 6, 7, 8], "goel20": [2, 4, 6, 8, 10, 12, 14, 16, 18, 20]}  # the scenarios' comments
@@ -158,7 +158,7 @@ class Probe:
 
 def instrumented_run(sc, algorithm: str, params: dict | None) -> tuple[Probe, float, int]:
     """One in-process lockstep run with every node instrumented: (probe, wall s, ticks)."""
-    from swarmloc.estimators.fusion_centre import FusionCentre
+    from swarmloc.estimators.ekf.centre import FusionCentre
 
     ids = sc.agent_ids if algorithm == "ekf-centre" else sc.localized_ids
     nodes = make_nodes(algorithm, sc, ids, params)
@@ -244,7 +244,7 @@ def replay_centralized(sc, frames: list[dict], times: dict[str, list[float]]) ->
 def update_side_by_side(duration: float, repeat: int) -> None:
     """The centralized EKF's relative-position update, information form (JointEkf.linear_relpos,
     the default) against 8N-row batches, alternating on the same recorded frames."""
-    from swarmloc.estimators.ekf_ccl import JointEkf
+    from swarmloc.estimators.ekf.ccl import JointEkf
 
     print("| swarm | relative positions | epoch tick: median (p90) ms | update at epoch: median ms | normal tick: median ms |")
     print("|---|---|---|---|---|")

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import os
 
-from swarmloc import pin_blas
+from swarmloc.process import pin_blas
 
 pin_blas()  # before numpy loads
 
@@ -46,6 +46,7 @@ import tempfile
 import time
 from datetime import date
 from pathlib import Path
+
 from machine import code_version, cpu_model  # benchmarks/machine.py
 
 HERE = Path(__file__).resolve()
@@ -247,12 +248,11 @@ def role_relay(a) -> None:
 def role_agent_pub(a) -> None:
     """Agent 1 of a netsim swarm, reduced to its radio: alive token, then --count unicast frames
     to agent 2 on radio/tx/1, numbered as the daemon numbers them, with its send-time attachment."""
+    import numpy as np
     import zenoh
 
     from swarmloc import wire
-    from swarmloc.messages import Beacon
-
-    import numpy as np
+    from swarmloc.wire.messages import Beacon
 
     keys = wire.Keys(a.swarm)
     session = zenoh.open(zconfig("client", connect=[a.connect]))

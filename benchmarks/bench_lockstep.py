@@ -19,9 +19,10 @@ import tempfile
 import time
 from datetime import date
 from pathlib import Path
+
 from machine import cpu_model  # benchmarks/machine.py
 
-from swarmloc import pin_blas
+from swarmloc.process import pin_blas
 
 pin_blas()  # before numpy loads
 
@@ -35,8 +36,8 @@ def zenoh_run(scenario: str, out: Path) -> dict:
 
 def in_process(scenario: str) -> float:
     from netsim.sim import Simulation
-    from swarmloc import scenario as S
-    from swarmloc.runner import InProcessRunner, make_nodes
+    from swarmloc.experiment import scenario as S
+    from swarmloc.experiment.runner import InProcessRunner, make_nodes
 
     sc = S.load(scenario)
     t0 = time.perf_counter()

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from bench_memory import children, cmdline, rss_kb  # benchmarks/bench_memory.py
 
-from swarmloc import pin_blas
+from swarmloc.process import pin_blas
 
 pin_blas()
 

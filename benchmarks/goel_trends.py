@@ -1,12 +1,12 @@
 """Accuracy figures and plots quoted in docs/ekf-ci.md (not timings): the EKF family on the
 goel scenarios, in process (the same nodes the agent processes run).
 
-Usage: python benchmarks/goel_trends.py      (about two minutes; writes docs/img/goel-*.png)
+Usage: python benchmarks/goel_trends.py [2node 10 20 10r dist]   (a few minutes; writes docs/img/goel*.png)
 """
 
 from __future__ import annotations
 
-from swarmloc import pin_blas
+from swarmloc.process import pin_blas
 
 pin_blas()  # before numpy loads
 
@@ -20,10 +20,10 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from netsim.sim import Simulation  # noqa: E402
-from swarmloc import scenario as S  # noqa: E402
 from swarmloc.estimators import REGISTRY  # noqa: E402
-from swarmloc.results import RunRecord, compute_references, position_errors  # noqa: E402
-from swarmloc.runner import InProcessRunner, make_nodes  # noqa: E402
+from swarmloc.experiment import scenario as S  # noqa: E402
+from swarmloc.experiment.results import RunRecord, compute_references, position_errors  # noqa: E402
+from swarmloc.experiment.runner import InProcessRunner, make_nodes  # noqa: E402
 
 IMG = Path(__file__).resolve().parent.parent / "docs" / "img"
 
@@ -97,6 +97,37 @@ def goel_n(name: str, half: list[int]) -> None:
             plt.close(fig)
 
 
+def goel_n_ranges(name: str, half: list[int]) -> None:
+    """Fig. 6 as the paper sets it up: ranges between all nodes, GNSS on half."""
+    rec, e = run(S.load(name), None, ["ekf-ccl"])
+    err, t = e["ekf-ccl"], np.array(rec.t)
+    without = [ci for ci, a in enumerate(rec.ids) if a not in half]
+    print(f"{name}: centralized EKF, nodes without GNSS: max {err[1:, without].max():.3f} m, after 10 s "
+          f"{err[100:, without].max():.3f} m; nodes with GNSS after 10 s {np.delete(err[100:], without, axis=1).max():.3f} m")
+    # Horizontal against vertical: ranges within a formation at nearly one altitude say little about height.
+    d = rec.trace("ekf-ccl").mean[100:, :, :3] - rec.truth_array()[100:, :, :3]
+    h, v = np.linalg.norm(d[..., :2], axis=-1), np.abs(d[..., 2])
+    for label, cols in (("without GNSS", without), ("with GNSS", [c for c in range(len(rec.ids)) if c not in without])):
+        print(f"  after 10 s, nodes {label}: horizontal max {h[:, cols].max():.3f} m, mean {h[:, cols].mean():.3f} m; "
+              f"vertical max {v[:, cols].max():.3f} m, mean {v[:, cols].mean():.3f} m")
+    fig, ax = plt.subplots(figsize=(7, 3.4))
+    for ci, aid in enumerate(rec.ids):
+        ax.plot(t, err[:, ci], lw=0.9, ls="-" if aid in half else "--", label=f"UAS {aid}" + ("" if aid in half else " (no GNSS)"))
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("position error (m)")
+    ax.set_title(f"{name}: centralized EKF, 2 cm ranges between all nodes, GNSS on {len(half)}")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=6, ncol=2)
+    fig.savefig(IMG / f"{name}-half.png", dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    # Fig. 5, GNSS on every node: the same split (the paper's "about 2 cm" maximum).
+    rec, _ = run(S.load(name).with_overrides(**{"sensors.gnss.agents": None}), None, ["ekf-ccl"])
+    d = rec.trace("ekf-ccl").mean[100:, :, :3] - rec.truth_array()[100:, :, :3]
+    h, v = np.linalg.norm(d[..., :2], axis=-1), np.abs(d[..., 2])
+    print(f"  GNSS on all, after 10 s: horizontal max {h.max():.3f} m, mean {h.mean():.3f} m; "
+          f"vertical max {v.max():.3f} m, mean {v.mean():.3f} m")
+
+
 def goel_dist() -> None:
     for label, gnss in (("GNSS on both", None), ("GNSS on UAS 1 only", [1])):
         out = {}
@@ -118,13 +149,15 @@ def goel_dist() -> None:
 
 
 def main() -> None:
-    which = sys.argv[1:] or ["2node", "10", "20", "dist"]
+    which = sys.argv[1:] or ["2node", "10", "20", "10r", "dist"]
     if "2node" in which:
         goel2node()
     if "10" in which:
         goel_n("goel10", [3, 5, 6, 7, 8])
     if "20" in which:
         goel_n("goel20", list(range(2, 21, 2)))
+    if "10r" in which:
+        goel_n_ranges("goel10-ranges", [3, 5, 6, 7, 8])
     if "dist" in which:
         goel_dist()
 

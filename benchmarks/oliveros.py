@@ -4,7 +4,7 @@ closed loop (Table 2), the three-vehicle network, and a relative-position link c
 Every run is an in-process lockstep run of a built-in scenario (the same frames, estimates and,
 in closed loop, commands as over agent processes: tests/test_vehicle_processes.py), EKF-CL (the
 paper's centralized EKF in the fusion-centre role) and, side by side on the same scenario and
-seed, EKF without CL (`ekf-local`). Writes the tables to benchmarks/out_oliveros.md and the
+seed, EKF-CI and `ekf-local` (CL without cross-covariances). Writes the tables to benchmarks/out_oliveros.md and the
 figures to docs/img/oliveros-*.png.
 
     .venv/bin/python benchmarks/oliveros.py [--duration S] [--workers N]
@@ -21,7 +21,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
-from swarmloc import pin_blas  # noqa: E402
+from swarmloc.process import pin_blas  # noqa: E402
 
 # Before numpy loads, and the workers are forked with it: two workers with a BLAS pool each on
 # two vCPUs ran the 104-state joint filter 5x slower.
@@ -33,16 +33,18 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from machine import code_version, cpu_model  # noqa: E402  benchmarks/machine.py
 
 ESTIMATORS = ("ekf-cl", "ekf-ci", "ekf-local")
-LABEL = {"ekf-cl": "EKF-CL", "ekf-ci": "EKF-CI", "ekf-local": "no CL"}
+# ekf-local is CL without the cross-covariances; the paper's "without CL" is `raw` (the studies
+# benchmarks/studies/oliveros-chain-control*.yaml).
+LABEL = {"ekf-cl": "EKF-CL", "ekf-ci": "EKF-CI", "ekf-local": "EKF-local"}
 CUT = {"at": 60.0, "action": "cut", "link": [3, 4], "duration": 30.0}
 
 
 def job(name: str, estimator: str, duration: float | None, faults: list | None = None) -> dict:
     from netsim.sim import Simulation
-    from swarmloc import scenario
-    from swarmloc.results import position_errors
-    from swarmloc.runner import InProcessRunner, make_nodes
-    from swarmloc.vehicles import CircleReference
+    from swarmloc.experiment import scenario
+    from swarmloc.experiment.results import position_errors
+    from swarmloc.experiment.runner import InProcessRunner, make_nodes
+    from swarmloc.models.vehicles import CircleReference
 
     over = {"estimator": {"name": estimator, "params": {}}}
     if duration is not None:
@@ -69,7 +71,7 @@ def job(name: str, estimator: str, duration: float | None, faults: list | None =
         for b, f in frames.items():
             for r in (f.vehicle.seen if f.vehicle is not None else []):
                 edges.setdefault(f"{b}->{r.target}", []).append(f.t)
-    from swarmloc.results import metrics
+    from swarmloc.experiment.results import metrics
 
     agents = metrics(record, [estimator])["estimators"][estimator]["agents"]
     nees = {a: (agents[str(a)]["nees"]["mean"], agents[str(a)]["nees"]["dof"]) for a in ids}
@@ -208,7 +210,7 @@ def main() -> None:
     # Table 2: closed loop
     lines += ["", "## Double caravan of quadrotors in closed loop (Table 2)", "",
               "Tracking error (m, RMS of |true position - reference| over t >= 10 s) and estimation error (m, RMS over "
-              "t >= 10 s), with CL (EKF-CL), with the distributed EKF-CI, and without CL (`ekf-local`):", ""]
+              "t >= 10 s), with CL (EKF-CL), with the distributed EKF-CI, and with `ekf-local`:", ""]
     for c in (1, 2):
         runs = {e: by[(f"oliveros-caravan-control-{c}", e, "")] for e in ESTIMATORS}
         cl, no = runs["ekf-cl"], runs["ekf-local"]
@@ -216,13 +218,13 @@ def main() -> None:
                   "| | " + " | ".join(f"v{a}" for a in cl["ids"]) + " |", "|---|" + "---|" * len(cl["ids"])]
         track = {e: window(r, 10, 1e9, "track") for e, r in runs.items()}
         lines += [f"| tracking, {LABEL[e]} | " + " | ".join(fmt(v) for v in track[e]) + " |" for e in ESTIMATORS]
-        lines += ["| tracking, no CL / EKF-CL | " + " | ".join(f"{b / a:.2f}" for a, b in zip(track["ekf-cl"],
+        lines += ["| tracking, EKF-local / EKF-CL | " + " | ".join(f"{b / a:.2f}" for a, b in zip(track["ekf-cl"],
                                                                                          track["ekf-local"])) + " |"]
         lines += [f"| estimation, {LABEL[e]} | " + " | ".join(fmt(v) for v in window(r, 10, 1e9)) + " |"
                   for e, r in runs.items()]
         lines.append("")
         shade = [(0, 40), (80, 120), (160, 200)] if c == 2 else None
-        plot_errors(args.img / f"oliveros-control-{c}.png", [cl, runs["ekf-ci"], no], ["EKF-CL", "EKF-CI", "without CL"],
+        plot_errors(args.img / f"oliveros-control-{c}.png", [cl, runs["ekf-ci"], no], ["EKF-CL", "EKF-CI", "EKF-local"],
                     f"Caravan of quadrotors in closed loop, case {c}: tracking error", key="track", shade=shade,
                     ylabel="tracking error (m)")
     # Three vehicles

@@ -1,8 +1,12 @@
 """Wang et al. 2022 (CSL-CTL), Table 4 and Fig. 5 over seeds: target localization of CSL-CTL
 against IL-CTL, and self-localization of IL, CSL (UKF-CCL) and CSL-CTL, in scenario wang2022.
 
-Usage: python benchmarks/wang2022_study.py [--seeds 10] [--first-seed 1] [--reading variance|std|both]
-       [--workers 2] [--out benchmarks/out_wang2022.md] [--fig-dir docs/img] [--plot-seed S]
+Usage: python benchmarks/wang2022_study.py [--scenario wang2022] [--seeds 10] [--first-seed 1]
+       [--reading variance|std|both] [--workers 2] [--out benchmarks/out_wang2022.md] [--fig-dir docs/img]
+       [--plot-seed S]
+
+`--scenario wang2022-paper` runs the paper's stated setup instead (docs/csl-ctl.md); its
+figures are then named after it (docs/img/wang2022-paper_fig5.png, ..._targets.png).
 
 Each run records scenario wang2022 with netsim's world and sensors in-process (no agent
 processes, no radio) and computes the four estimators offline from the recorded frames
@@ -17,7 +21,7 @@ docs/img/wang2022_targets.png. Not a test.
 
 from __future__ import annotations
 
-from swarmloc import pin_blas
+from swarmloc.process import pin_blas
 
 pin_blas()  # before numpy loads
 
@@ -31,7 +35,6 @@ from datetime import datetime, timezone  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
-
 from machine import code_version, cpu_model  # noqa: E402  benchmarks/machine.py
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -53,10 +56,13 @@ def log(msg: str) -> None:
     print(f"[{datetime.now():%H:%M:%S}] {msg}", file=sys.stderr, flush=True)
 
 
-def scenario_for(reading: str, seed: int):
-    import swarmloc.scenario
+SCENARIO = "wang2022"  # --scenario; module-level so that the forked workers see it
 
-    return swarmloc.scenario.load("wang2022").with_overrides(**{"seed": seed, **READINGS[reading]})
+
+def scenario_for(reading: str, seed: int):
+    import swarmloc.experiment.scenario
+
+    return swarmloc.experiment.scenario.load(SCENARIO).with_overrides(**{"seed": seed, **READINGS[reading]})
 
 
 def run_one(job: tuple[str, int, bool]) -> dict:
@@ -64,7 +70,7 @@ def run_one(job: tuple[str, int, bool]) -> dict:
     reading, seed, keep_tracks = job
     from netsim.sim import Simulation
     from swarmloc.estimators import REGISTRY
-    from swarmloc.results import RunRecord, metrics, position_errors, target_errors
+    from swarmloc.experiment.results import RunRecord, metrics, position_errors, target_errors
 
     started = time.perf_counter()
     sc = scenario_for(reading, seed)
@@ -324,6 +330,7 @@ def plot_targets(run: dict, path: Path) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenario", default="wang2022", help="wang2022 (as shipped) or wang2022-paper")
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--first-seed", type=int, default=1)
     ap.add_argument("--reading", choices=["variance", "std", "both"], default="both")
@@ -332,6 +339,8 @@ def main() -> None:
     ap.add_argument("--fig-dir", type=Path, default=ROOT / "docs" / "img")
     ap.add_argument("--plot-seed", type=int, default=None, help="seed of wang2022_targets.png (default: the first)")
     a = ap.parse_args()
+    global SCENARIO
+    SCENARIO = a.scenario
     readings = ["variance", "std"] if a.reading == "both" else [a.reading]
     seeds = list(range(a.first_seed, a.first_seed + a.seeds))
     plot_seed = a.plot_seed if a.plot_seed is not None else seeds[0]
@@ -351,7 +360,7 @@ def main() -> None:
     total = time.perf_counter() - t0
     by_reading = {rd: sorted((r for r in results if r["reading"] == rd), key=lambda r: r["seed"]) for rd in readings}
 
-    fig5, figt = a.fig_dir / "wang2022_fig5.png", a.fig_dir / "wang2022_targets.png"
+    fig5, figt = a.fig_dir / f"{a.scenario}_fig5.png", a.fig_dir / f"{a.scenario}_targets.png"
     plot_fig5(by_reading, fig5)
     track_run = next(r for r in results if "truth_xy" in r)
     plot_targets(track_run, figt)
@@ -363,14 +372,16 @@ def main() -> None:
             return str(p)
 
     load1 = os.getloadavg()
+    sc0 = scenario_for(readings[0], seeds[0])
+    start_radius = float(np.linalg.norm(np.array(sc0.world.agents[0].start) - TARGET))
     md = ["## Wang et al. 2022 (CSL-CTL): Table 4 and Fig. 5 over seeds", "",
           f"Machine: {cpu_model()}, {os.cpu_count()} CPUs, Python {sys.version.split()[0]}, numpy {np.__version__}; "
           f"code {code_version()}; {started_at:%Y-%m-%d %H:%M} UTC.  ",
           f"Command: `{command}` ({a.workers} worker processes; whole study {total:.0f} s; load average 1/5/15 min "
           f"{load0[0]:.2f}/{load0[1]:.2f}/{load0[2]:.2f} at start, {load1[0]:.2f}/{load1[1]:.2f}/{load1[2]:.2f} at end)  ",
           f"Figures: `{rel(fig5)}`, `{rel(figt)}` ({track_run['reading']} reading, seed {track_run['seed']}).", "",
-          "Scenario `wang2022` (paper Table 3): 4 planar-pose agents drive at 1 m/s straight at a static target at "
-          "(500, 0) from a 500 m arc; an agent within 400 m ranges the target with probability 0.8 per tick (std 10 m); "
+          f"Scenario `{a.scenario}` (paper Table 3): 4 planar-pose agents drive at 1 m/s straight at a static target at "
+          f"(500, 0) from a {start_radius:.0f} m arc; an agent within 400 m ranges the target with probability 0.8 per tick (std 10 m); "
           "ranges among agents std 5 m, one per tick with probability 0.5; speed std 0.5 m/s; dt 0.5 s; the run stops "
           "at the first tick an agent is within 200 m of the target. Each seed is one draw of all sensor noise. "
           "All estimators are computed offline from the run's recorded frames (`compute_references`): CSL-CTL is "

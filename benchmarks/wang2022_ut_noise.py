@@ -22,9 +22,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from netsim.sim import Simulation  # noqa: E402
-from swarmloc import scenario as S  # noqa: E402
-from swarmloc.estimators.csl_ctl import JointCslCtl  # noqa: E402
+from swarmloc.estimators.ctl.csl_ctl import JointCslCtl  # noqa: E402
 from swarmloc.estimators.settings import CtlSettings  # noqa: E402
+from swarmloc.experiment import scenario as S  # noqa: E402
 
 
 def frames_and_truth(sc):

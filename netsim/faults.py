@@ -7,8 +7,28 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from swarmloc.faults import (ClearLoss, CommandOff, CommandOn, Cut, FaultError, GnssOff, GnssOn, Heal, JammerOff, JammerOn, Kill, Loss,
-                             Partition, RadioOff, RadioOn, Restart, Restore, _Fault, inverse_of, nodes_named)
+from swarmloc.experiment.faults import (
+    ClearLoss,
+    CommandOff,
+    CommandOn,
+    Cut,
+    FaultError,
+    GnssOff,
+    GnssOn,
+    Heal,
+    JammerOff,
+    JammerOn,
+    Kill,
+    Loss,
+    Partition,
+    RadioOff,
+    RadioOn,
+    Restart,
+    Restore,
+    _Fault,
+    inverse_of,
+    nodes_named,
+)
 
 
 @dataclass

@@ -26,17 +26,34 @@ from typing import Callable
 import numpy as np
 import zenoh
 
-from netsim.sim import Simulation
-from swarmloc import auth, limits, wire
-from swarmloc.faults import FaultError, inverse_of, nodes_named, parse_fault
-from swarmloc.messages import Clock, Command, Control, Done, EstimateMsg, Event, LinkMsg, LinkNack, Links, Reply, Truth
-from swarmloc.node import Estimate, RadioRx, RadioTx
+from netsim.sim import Deliveries, Simulation
+from swarmloc import wire
 from swarmloc.estimators import REGISTRY
-from swarmloc.results import RunRecord, compute_references, metrics, write_run
-from swarmloc.scenario import Scenario
+from swarmloc.experiment.faults import FaultError, inverse_of, nodes_named, parse_fault
+from swarmloc.experiment.recording import withheld_key
+from swarmloc.experiment.results import RunRecord, compute_references, metrics
+from swarmloc.experiment.rundir import write_run
+from swarmloc.experiment.scenario import Scenario
+from swarmloc.node import Estimate, RadioRx, RadioTx
+from swarmloc.wire import auth, limits
+from swarmloc.wire.messages import (
+    Clock,
+    Command,
+    Control,
+    Done,
+    EstimateMsg,
+    Event,
+    LinkMsg,
+    LinkNack,
+    Links,
+    Reply,
+    Sensors,
+    Truth,
+)
 
 log = logging.getLogger("swarmloc.netsim")
 NETSIM_ID = 0  # sender id netsim uses on the wire (agent ids are the scenario's)
+STATS_REASONS = ("unknown-agent", "malformed", "src-mismatch", "stale-nonce")  # not the seal's: no auth- prefix
 
 
 class SetupError(RuntimeError):
@@ -56,7 +73,10 @@ class ServerConfig:
     tick_timeout: float = 10.0  # s of silence before a lagging agent is declared unresponsive
     plots: bool = True
     await_rejoin: bool = False  # lockstep: an agent that went away (a crash) is restarted by the launcher
-    keyring: object | None = None  # swarmloc.auth.Keyring: every frame sealed and opened with it (docs/security.md)
+    keyring: object | None = None  # swarmloc.wire.auth.Keyring: every frame sealed and opened with it (docs/security.md)
+    record: Path | None = None  # run.mcap: every frame and the Foxglove view, written as the run goes
+    view_port: int | None = None  # the live view: a Foxglove WebSocket server on 127.0.0.1 (0: any free port)
+    ros2: object | None = None  # swarmloc.wire.ros2.Topics: every estimate also on ROS 2 topics (docs/ros2.md)
     on_tick: Callable[[int, int], None] | None = field(default=None, repr=False)
 
 
@@ -86,7 +106,7 @@ class NetsimServer:
         self.commands = {a: 0 for a in self.ids}
         self.tick_timeouts = 0  # times a lockstep tick waited out tick_timeout
         self.rejected: dict[str, Counter[str]] = {k: Counter() for k in ("tx", "done", "estimate", "command", "alive",
-                                                                        "control")}
+                                                                        "control", "stats")}
         self.agent_events: list[dict] = []  # agents leaving (crash, kill) or joining after tick 0
         # Lockstep always resolves frames in rounds, in (sender, seq) order, never on arrival:
         # with arrival order a node could meet a token and a log replay in either order.
@@ -105,6 +125,11 @@ class NetsimServer:
         ring = cfg.keyring
         self.sealer = auth.Sealer(ring, NETSIM_ID) if ring is not None else None
         self.opener = auth.Opener(ring) if ring is not None else None
+        self.recorder = None  # swarmloc.experiment.recording.Recorder, made by open()
+        self.view = None  # the live view's foxglove WebSocketServer
+        self.ros2 = None  # swarmloc.wire.ros2.Ros2Publisher
+        self._pub_keys: dict[int, str] = {}
+        self._faults_seen = 0  # entries of the fault log already recorded
 
     # ---------------------------------------------------------------- zenoh plumbing
 
@@ -137,8 +162,42 @@ class NetsimServer:
         self.pub_sensors = {a: self.session.declare_publisher(k.sensors(a), **block) for a in self.ids}
         self.pub_truth = {a: self.session.declare_publisher(k.truth(a), **block) for a in self.ids}
         self.pub_rx = {a: self.session.declare_publisher(k.radio_rx(a), **block) for a in self.ids}
+        self._pub_keys = {id(p): str(p.key_expr) for p in (self.pub_clock, self.pub_links, self.pub_events,
+                                                           *self.pub_sensors.values(), *self.pub_truth.values())}
+        self._open_view()
+        if self.cfg.ros2 is not None:
+            from swarmloc.wire.ros2 import Ros2Publisher
+
+            self.ros2 = Ros2Publisher(self.session, self.cfg.ros2, "swarmloc_netsim", self.sc.localized_ids, block)
+
+    def _open_view(self) -> None:
+        """run.mcap and the live view: one recorder, its channels going to the file and, with
+        view_port, to a Foxglove WebSocket server on 127.0.0.1."""
+        if self.cfg.record is None and self.cfg.view_port is None:
+            return
+        from swarmloc.experiment.recording import Recorder
+
+        meta = {"writer": "netsim", "swarm": self.cfg.swarm, "scenario": self.sc.to_yaml(), "seed": self.sc.seed if self.cfg.seed is None else self.cfg.seed,
+                "mode": self.mode, "dt": self.sc.clock.dt, "agents": self.ids}
+        self.recorder = Recorder(self.cfg.record, meta, self.sc)
+        if self.cfg.view_port is not None:
+            import foxglove
+
+            self.view = foxglove.start_server(name=f"swarmloc {self.cfg.swarm}", host="127.0.0.1",
+                                              port=self.cfg.view_port, context=self.recorder.context)
+            log.warning("live view: Foxglove WebSocket ws://127.0.0.1:%d", self.view.port)
+
+    def _rec_t(self) -> float:
+        """Modelled time to stamp a recorded frame with: the tick's (lockstep), now (real time)."""
+        return self.sim.t if self.mode == "lockstep" or not self.t0 else max(self.sim.t, self._now())
 
     def close(self) -> None:
+        if self.recorder is not None:
+            self.recorder.close()
+        if self.view is not None:
+            self.view.stop()
+        if self.ros2 is not None:
+            self.ros2.close()
         self.session.close()
 
     def _seal(self, data: bytes) -> bytes:
@@ -155,9 +214,12 @@ class NetsimServer:
         except auth.AuthError as exc:
             return self._refuse(kind, key, f"auth-{exc.reason}", str(exc))
 
-    def _put(self, pub, msg) -> None:
+    def _put(self, pub, msg, dst: int | None = None) -> None:
         self.seq += 1
-        pub.put(self._seal(wire.encode(msg, NETSIM_ID, self.seq)))
+        data = self._seal(wire.encode(msg, NETSIM_ID, self.seq, dst))
+        pub.put(data)
+        if self.recorder is not None:
+            self.recorder.frame(self._pub_keys[id(pub)], data, self._rec_t())
 
     # ---------------------------------------------------------------- inputs
 
@@ -207,6 +269,8 @@ class NetsimServer:
 
     def _handle(self, item) -> None:
         kind, key, payload, stamp = item
+        if self.recorder is not None and kind in ("tx", "done", "estimate", "command") and payload is not None:
+            self.recorder.frame(key, payload, self._rec_t())
         if kind == "tx":
             self._on_tx(key, payload, stamp)
         elif kind in ("done", "estimate") and (got := self._newer(kind, key, payload)):
@@ -218,6 +282,11 @@ class NetsimServer:
                 nis = () if body.nis is None else tuple((float(v), int(d)) for v, d in body.nis)
                 targets = tuple((t.target, t.mean, t.cov) for t in body.targets)
                 self.record.add_estimate(body.algorithm, aid, Estimate(body.k, body.mean, body.cov, nis, targets))
+                t = body.k * self.sc.clock.dt
+                if self.recorder is not None:
+                    self.recorder.estimate(body.algorithm, aid, body.k, t, body.mean, body.cov, targets)
+                if self.ros2 is not None and aid in self.record.col:
+                    self.ros2.publish(aid, self.sc.agent(aid).model, t, body.mean, body.cov, time.time_ns())
         elif kind == "command":
             self._on_command(key, payload)
         elif kind == "alive":
@@ -246,12 +315,16 @@ class NetsimServer:
             if self.sim.k >= 0:
                 log.warning("agent %s joined at tick %d", aid, self.sim.k)
                 self.agent_events.append({"k": self.sim.k, "t": self.sim.t, "agent": aid, "event": "joined"})
+                if self.recorder is not None:
+                    self.recorder.event(self.sim.t, f"agent {aid} joined at tick {self.sim.k}")
         else:
             self.alive.discard(aid)
             self.sim.down.add(aid)  # the radio now drops (and NACKs) frames to it as "down"
             log.warning("agent %s left the swarm at tick %d", aid, self.sim.k)
             if not self.finished:
                 self.agent_events.append({"k": self.sim.k, "t": self.sim.t, "agent": aid, "event": "left"})
+                if self.recorder is not None:
+                    self.recorder.event(self.sim.t, f"agent {aid} left the swarm at tick {self.sim.k}", "warning")
                 if self.cfg.await_rejoin and aid not in self.sim.faults.killed():
                     self.awaited.add(aid)
 
@@ -298,30 +371,39 @@ class NetsimServer:
             u = None
         self.sim.command(aid, u)
 
-    def _deliver_all(self, rxs: list[RadioRx], arrived: float | None = None) -> None:
-        for rx in rxs:
-            self._deliver(rx)
+    def _deliver_all(self, rxs: list[RadioRx] | Deliveries, arrived: float | None = None) -> None:
+        if isinstance(rxs, Deliveries):
+            for r, t, data, src, seq, unicast in rxs.raw():
+                self._deliver_frame(r, t, data, None, src, seq, unicast)
+        else:
+            for rx in rxs:
+                self._deliver(rx)
         if arrived is not None and rxs:
             self.hop_latency.append(time.perf_counter() - arrived)
 
     def _deliver(self, rx: RadioRx) -> None:
-        r = rx.receiver
+        self._deliver_frame(rx.receiver, rx.t, rx.data, rx.nack, rx.src, rx.seq, rx.unicast)
+
+    def _deliver_frame(self, r: int, t: float, data: bytes | None, nack: LinkNack | None, src: int, seq: int,
+                       unicast: bool) -> None:
         if r not in self.alive:
             # A dead agent hears nothing and is not counted; like a missing MAC ACK, its sender
             # learns that a unicast did not get through.
-            if rx.unicast and rx.src in self.alive:
-                self._deliver(RadioRx(rx.src, rx.t, nack=LinkNack(rx.seq, r, "down")))
+            if unicast and src in self.alive:
+                self._deliver(RadioRx(src, t, nack=LinkNack(seq, r, "down")))
             return
-        if rx.nack is not None:
+        if nack is not None:
             self.seq += 1
-            data, sent = self._seal(wire.encode(rx.nack, NETSIM_ID, self.seq)), None
+            data, sent = self._seal(wire.encode(nack, NETSIM_ID, self.seq)), None
         else:  # the sender's frame as it sealed it
-            data, sent = rx.data, self.sent_at.get((rx.src, rx.seq))
+            sent = self.sent_at.get((src, seq))
         self.delivered[r] += 1
         attachment = wire.encode_delivery(self.delivered[r], sent if sent == sent else None)
         if self.sealer is not None:
             attachment += auth.delivery_tag(self.cfg.keyring, r, attachment, data)
         self.pub_rx[r].put(data, attachment=attachment)
+        if self.recorder is not None:
+            self.recorder.frame(self.keys.radio_rx(r), data, self._rec_t())
 
     # ---------------------------------------------------------------- control
 
@@ -481,16 +563,44 @@ class NetsimServer:
                 self.joined_at[a] = min(self.joined_at[a], k)
         self._put(self.pub_clock, Clock(k, t, self.mode, self.sc.clock.dt, self.sc.clock.speed))
         truth = self.sim.truth()
+        targets = self.sim.targets()
+        rec = self.recorder
+        if rec is not None:
+            self._record_faults()
+            rec.truth(k, t, truth, targets)
+            for a in killed:
+                rec.event(t, f"kill agent {a}", "warning")
+            for a in restarted:
+                rec.event(t, f"restart agent {a}")
         for a in self.ids:
             self._put(self.pub_truth[a], Truth(k, t, truth[a]))
-            if a in self.alive and a not in after:
-                self._put(self.pub_sensors[a], frames[a])
-        self.record.add_tick(k, t, frames, truth, self.sim.targets())
+            if frames[a] is None:  # a recorded world without a frame for it this tick
+                frames[a] = Sensors(k, t, None, [])
+            elif a in self.alive and a not in after:
+                # Addressed under the seal: a copy replayed to another agent is misaddressed there
+                # (issue 26, finding 2: agent 1's frames, replayed to agent 4, were taken).
+                self._put(self.pub_sensors[a], frames[a], dst=a)
+            elif rec is not None:
+                rec.frame(withheld_key(self.keys, a), wire.encode(frames[a], NETSIM_ID, 0), t)
+        self.record.add_tick(k, t, frames, truth, targets)
         return k
+
+    def _record_faults(self) -> None:
+        log_ = self.sim.fault_log
+        if len(log_) > self._faults_seen:
+            active = self.sim.faults.describe()
+            for entry in log_[self._faults_seen:]:
+                self.recorder.fault(entry, active)
+            self._faults_seen = len(log_)
 
     def _end_tick(self, k: int) -> None:
         if k % max(1, int(round(1.0 / self.sc.clock.dt))) == 0:
-            self._put(self.pub_links, Links(k, [LinkMsg(**row) for row in self.sim.link_table()]))
+            rows = self.sim.link_table()
+            self._put(self.pub_links, Links(k, [LinkMsg(**row) for row in rows]))
+            if self.recorder is not None:
+                self.recorder.links(rows)
+        if self.recorder is not None:
+            self.recorder.end_tick(k, self.sim.t)
         if self.cfg.on_tick:
             self.cfg.on_tick(k, self.sim.steps)
 
@@ -506,7 +616,7 @@ class NetsimServer:
                 break
             batch, self.round = self.round, []
             started = time.perf_counter()
-            self._deliver_all(self.sim.exchange(batch), started)
+            self._deliver_all(self.sim.exchange_batch(batch), started)
         self._end_tick(k)
 
     def _now(self) -> float:
@@ -547,16 +657,19 @@ class NetsimServer:
         """Each live agent's own counters (drops by reason, hop latency), via its stats queryable."""
         out = {}
         expected = len(self.alive)
-        for r in self.session.get(self.keys.stats("*"), timeout=timeout):
+        nonce = auth.query_nonce()
+        # No consolidation: Zenoh would keep one answer per key, a stranger's as readily as the agent's.
+        for r in self.session.get(self.keys.stats("*"), payload=nonce.encode(), timeout=timeout,
+                                  consolidation=zenoh.ConsolidationMode.NONE):
             if r.ok is None:
                 continue
-            try:
-                data = r.ok.payload.to_bytes()
-                if self.opener is not None:
-                    data, _ = self.opener.open(data)
-                out[str(wire.Keys.agent_of(str(r.ok.key_expr)))] = wire.decode(data, expect=(Reply,)).body.data
-            except (wire.WireError, ValueError) as exc:  # auth.AuthError is a ValueError
-                log.warning("bad stats reply: %s", exc)
+            try:  # the first answer is not the answer: only the agent's own, to this query (finding 3)
+                aid, data = auth.open_stats_reply(self.opener, str(r.ok.key_expr), r.ok.payload.to_bytes(), nonce)
+            except auth.AuthError as exc:
+                self._refuse("stats", str(r.ok.key_expr), exc.reason if exc.reason in STATS_REASONS
+                             else f"auth-{exc.reason}", str(exc))
+                continue
+            out.setdefault(str(aid), data)
             if len(out) >= expected:
                 break  # do not sit out the timeout once everyone has answered
         return out
@@ -583,6 +696,12 @@ class NetsimServer:
             "inbox": self.q.stats(),
             **({"commands": self.sim.commands} if self.sim.commands else {}),
         }
+        if self.recorder is not None:
+            extra["recording"] = {"frames": self.recorder.frames, **({"file": self.cfg.record.name}
+                                                                     if self.cfg.record is not None else {})}
+            self.recorder.close()  # everything on disk before the slower run directory
+        if self.ros2 is not None:
+            extra["ros2"] = {"published": self.ros2.published, "skipped": self.ros2.skipped}
         algorithms = REGISTRY.order({self.sc.estimator.name, *self.sc.reference_names, *self.record.est})
         if self.cfg.out is None:
             return {**metrics(self.record, algorithms), **extra}

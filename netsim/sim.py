@@ -1,6 +1,6 @@
 """The environment as pure code: world, radio and faults, with no transport.
 
-The netsim process wraps this in Zenoh; the in-process runner (swarmloc.runner) drives it
+The netsim process wraps this in Zenoh; the in-process runner (swarmloc.experiment.runner) drives it
 directly. Both therefore see the same trajectories, sensor noise and link decisions.
 
 Two ways to move frames, one per clock mode:
@@ -16,18 +16,21 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from collections import Counter
+
 import numpy as np
 from pydantic import TypeAdapter, ValidationError
 
 from netsim.channel import DROP_REASONS, ChannelConfig, Jammer, Outcomes, RadioMedium, TxFrame, UnitDisk
 from netsim.faults import BLOCK_REASONS, FaultState
 from netsim.world import World, streams
-from swarmloc.faults import FaultError, _Fault
-from swarmloc.messages import LinkNack
+from swarmloc.errors import readable
+from swarmloc.experiment.faults import FaultError, _Fault
+from swarmloc.experiment.scenario import Scenario, ScenarioError
 from swarmloc.node import RadioRx as Rx
 from swarmloc.node import RadioTx as Tx
-from swarmloc.scenario import Scenario, ScenarioError
+from swarmloc.wire.messages import LinkNack
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +48,7 @@ def channel_of(scenario: Scenario):
     try:
         return CHANNEL.validate_python(scenario.radio)
     except ValidationError as exc:
-        lines = [f"  radio.{'.'.join(str(p) for p in e['loc'][1:])}: {e['msg']}" for e in exc.errors()]
+        lines = [f"  radio.{'.'.join(str(p) for p in e['loc'][1:])}: {readable(e)}" for e in exc.errors()]
         raise ScenarioError(f"{scenario.name}: invalid radio\n" + "\n".join(lines)) from None
 
 
@@ -83,6 +86,32 @@ def _make_rx(receivers: list[int], times: list[float], frames: list[tuple[bytes,
                              "unicast": unicast})
         out.append(rx)
     return out
+
+
+class Deliveries:
+    """A batch of deliveries in order, without a RadioRx each: receiver i gets
+    ``frames[frame_of[i]]`` (data, src, seq, unicast) at ``times[i]``. Iterating makes the
+    RadioRx objects (what :meth:`Simulation.exchange` returns); :meth:`raw` gives their fields
+    as tuples, which is what netsim's server needs to put a frame on, for a tenth of the cost
+    at hundreds of receivers."""
+
+    __slots__ = ("receivers", "times", "frames", "frame_of")
+
+    def __init__(self, receivers: list[int], times: list[float], frames: list[tuple[bytes, int, int, bool]],
+                 frame_of: list[int]):
+        self.receivers, self.times, self.frames, self.frame_of = receivers, times, frames, frame_of
+
+    def __len__(self) -> int:
+        return len(self.receivers)
+
+    def __iter__(self):
+        return iter(_make_rx(self.receivers, self.times, self.frames, self.frame_of))
+
+    def raw(self):
+        """(receiver, t, data, src, seq, unicast) per delivery, in order."""
+        frames = self.frames
+        for r, t, f in zip(self.receivers, self.times, self.frame_of):
+            yield (r, t, *frames[f])
 
 
 def _with_nack(frame: tuple[bytes, int, int, bool]) -> tuple:
@@ -124,14 +153,26 @@ class RadioLog:
 def world_of(scenario: Scenario, seed: int | None = None):
     """The scenario's world: simulated, or a recording replayed (world.source)."""
     if scenario.world.source == "mrclam":
-        from netsim.replay import ReplayWorld
+        from netsim.world.recorded import ReplayWorld
 
         return ReplayWorld(scenario, seed)
+    if scenario.world.source == "mcap":
+        from netsim.world.recorded import McapWorld
+
+        return McapWorld(scenario, seed)
     return World(scenario, seed)
 
 
+# A batch of outcomes of one frame with at most this many receptions is counted and delivered
+# in plain Python (_resolve_one): numpy's fixed cost per call is most of the work for a few.
+_SCALAR_MAX = 8
+
+
 class Simulation:
-    def __init__(self, scenario: Scenario, seed: int | None = None):
+    def __init__(self, scenario: Scenario, seed: int | None = None, scalar: bool = True):
+        """``scalar=False`` routes every round through the vectorised path alone (the reference
+        the scalar path is tested against: tests/test_scalar_path.py)."""
+        self.scalar = scalar
         self.sc = scenario
         self.world = world_of(scenario, seed)
         rng = streams(scenario.seed if seed is None else seed)
@@ -139,6 +180,7 @@ class Simulation:
         self.steps = self.world.steps
         self.channel = channel_of(scenario)
         self.medium = RadioMedium(self.channel, rng["radio"])
+        self.medium.scalar = scalar
         self.loss_seed = int(rng["loss"].integers(2**62))
         self.faults = FaultState(self.ids)
         self.down: set[int] = set()  # agents whose process is not running (netsim's view)
@@ -158,6 +200,7 @@ class Simulation:
         self._last_heard = np.full((n, n), np.nan)
         self._last_sinr = np.full((n, n), np.nan)  # SINR of the last frame src -> receiver
         self._jam_cache: tuple[tuple, np.ndarray] | None = None
+        self._clean_cache: tuple[tuple, bool] | None = None
         self._off: tuple[int, list[bool]] | None = None
         self._index = {a: i for i, a in enumerate(self.ids)}
         self.radio_log = RadioLog()
@@ -261,6 +304,11 @@ class Simulation:
 
     def exchange(self, frames: list[Tx]) -> list[Rx]:
         """Lockstep: one round of frames, offered together, resolved completely."""
+        out = self.exchange_batch(frames)
+        return out if isinstance(out, list) else list(out)
+
+    def exchange_batch(self, frames: list[Tx]) -> list[Rx] | Deliveries:
+        """:meth:`exchange`, the deliveries of a round without NACKs as :class:`Deliveries`."""
         early: list[Rx] = []
         offered: list[Outcomes] = []
         for tx in sorted(frames, key=lambda f: (f.src, f.seq)):
@@ -268,11 +316,12 @@ class Simulation:
             early += nacks
             if drops is not None:
                 offered.append(drops)
-        out = self._resolve(Outcomes.concat([*offered, self.medium.run_to_idle()]), in_round_order=True)
+        out = self._resolve(Outcomes.concat([*offered, self.medium.run_to_idle()]), in_round_order=True,
+                            batch=not early)
         if early:
             out = sorted(early + out, key=lambda r: (r.t, r.receiver, r.nack is not None))
         if out:
-            self.vt = max(self.vt, out[-1].t)  # sorted by time
+            self.vt = max(self.vt, out.times[-1] if isinstance(out, Deliveries) else out[-1].t)  # sorted by time
         return out
 
     def offer(self, tx: Tx, t: float) -> list[Rx]:
@@ -336,11 +385,17 @@ class Simulation:
                 del self._inflight[u]
         return txs, frame_of.reshape(-1)
 
-    def _resolve(self, out: Outcomes, in_round_order: bool = False) -> list[Rx]:
+    def _resolve(self, out: Outcomes, in_round_order: bool = False, batch: bool = False) -> list[Rx] | Deliveries:
         """Overlay down agents and faults on the channel's outcomes, count them, and make the
         deliveries and NACKs: in outcome order, or sorted as a lockstep round returns them."""
         if not len(out):
             return []
+        if self.scalar and len(out) <= _SCALAR_MAX:
+            uids = out.uid.tolist()
+            if uids.count(uids[0]) == len(uids):
+                rx = self._resolve_one(out, uids[0], in_round_order)
+                if rx is not None:
+                    return rx
         txs, frame_of = self._frames_of(out.uid)
         s, r = self._agent(out.src), self._agent(out.receiver)
         code = out.reason.copy()
@@ -349,7 +404,67 @@ class Simulation:
             code[ok] = self._overlay(txs, frame_of[ok], s[ok], r[ok])
         sizes = np.array([len(tx.data) for tx in txs], np.int64)
         self._count(out, s, r, code, sizes[frame_of])
-        return self._deliveries(out, code, txs, frame_of, in_round_order)
+        return self._deliveries(out, code, txs, frame_of, in_round_order, batch)
+
+    def _resolve_one(self, out: Outcomes, uid: int, in_round_order: bool) -> list[Rx] | None:
+        """_resolve of a few outcomes of one frame, element by element: the same counts, log
+        and deliveries in the same order. None (nothing done): a receiver outside the swarm,
+        left to the general path."""
+        index = self._index
+        receivers = out.receiver.tolist()
+        rows = [index.get(x, -1) for x in receivers]
+        entry = self._inflight[uid]
+        tx = entry[0]
+        i = index.get(tx.src, -1)
+        if i < 0 or -1 in rows:
+            return None
+        k = len(receivers)
+        entry[1] -= k
+        if entry[1] <= 0:
+            del self._inflight[uid]
+        codes = out.reason.tolist()
+        if 0 in codes and not self._clean():
+            code = out.reason.copy()
+            ok = np.flatnonzero(code == 0)
+            code[ok] = self._overlay([tx], np.zeros(ok.size, np.int64), np.full(ok.size, i), np.array(rows)[ok])
+            codes = code.tolist()
+        times, sinrs = out.t.tolist(), out.sinr_db.tolist()
+        attempts, delivered, dropped = self._attempts, self._delivered, self._dropped
+        heard, sinr = self._last_heard, self._last_sinr
+        for j, c, t, q in zip(rows, codes, times, sinrs):
+            attempts[i, j] += 1
+            if c == 0:
+                delivered[i, j] += 1
+                heard[i, j] = t
+            else:
+                dropped[i, j, c] += 1
+            if math.isfinite(q):
+                sinr[i, j] = q
+        self.radio_log.add(self.k, out.src, out.receiver, np.full(k, len(tx.data), np.int64), np.array(codes, np.int8))
+        unicast = tx.dst is not None
+        got = [m for m, c in enumerate(codes) if c == 0]
+        if in_round_order:
+            got.sort(key=lambda m: (times[m], receivers[m]))
+        rx = _make_rx([receivers[m] for m in got], [times[m] for m in got], [(tx.data, tx.src, tx.seq, unicast)],
+                      [0] * len(got))
+        nacked = [m for m, c in enumerate(codes) if c != 0] if unicast else []
+        if not nacked:
+            return rx
+        nacks = [Rx(tx.src, times[m], nack=LinkNack(tx.seq, tx.dst, REASONS[codes[m]][:32])) for m in nacked]
+        if in_round_order:
+            return sorted(rx + nacks, key=lambda x: (x.t, x.receiver, x.nack is not None))
+        both = sorted(zip(got + nacked, rx + nacks), key=lambda p: p[0])
+        return [x for _, x in both]
+
+    def _clean(self) -> bool:
+        """No fault, down agent or jammer can change what the channel delivered this tick."""
+        if self.down:
+            return False
+        key = (self.faults.version, self.k)
+        if self._clean_cache is None or self._clean_cache[0] != key:
+            blocked, loss = self._fault_tables()
+            self._clean_cache = (key, blocked is None and loss is None and not self._jammed_mask().any())
+        return self._clean_cache[1]
 
     def _overlay(self, txs: list[Tx], frame: np.ndarray, s: np.ndarray, r: np.ndarray) -> np.ndarray:
         """Why a frame the channel delivered is lost all the same (0: it is not)."""
@@ -421,7 +536,7 @@ class Simulation:
         a.flat[pair] = v
 
     def _deliveries(self, out: Outcomes, code: np.ndarray, txs: list[Tx], frame_of: np.ndarray,
-                    in_round_order: bool) -> list[Rx]:
+                    in_round_order: bool, batch: bool = False) -> list[Rx] | Deliveries:
         got = np.flatnonzero(code == 0)
         nacked = np.flatnonzero(code != 0)
         if nacked.size:
@@ -430,6 +545,8 @@ class Simulation:
         if in_round_order:  # by (t, receiver, NACK last), ties in outcome order
             got = got[np.lexsort((out.receiver[got], out.t[got]))]
         frames = [(tx.data, tx.src, tx.seq, tx.dst is not None) for tx in txs]
+        if batch and not nacked.size:
+            return Deliveries(out.receiver[got].tolist(), out.t[got].tolist(), frames, frame_of[got].tolist())
         rx = _make_rx(out.receiver[got].tolist(), out.t[got].tolist(), frames, frame_of[got].tolist())
         if not nacked.size:
             return rx

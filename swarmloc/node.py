@@ -17,8 +17,8 @@ from typing import Any
 import numpy as np
 
 from swarmloc import resolve, wire
-from swarmloc.messages import LinkNack, Sensors
-from swarmloc.models import MOTION_MODELS, MotionModel, Odometry
+from swarmloc.models.motion import MOTION_MODELS, MotionModel, Odometry
+from swarmloc.wire.messages import LinkNack, Sensors
 
 log = logging.getLogger(__name__)
 
@@ -213,7 +213,7 @@ class Node:
         return []
 
     def command(self):
-        """Closed loop: the actuator command (swarmloc.messages.Command) for the vehicle, computed
+        """Closed loop: the actuator command (swarmloc.wire.messages.Command) for the vehicle, computed
         from the current estimate, or None for a node that commands nothing. The driver publishes
         it after each estimate; it must depend only on the node's state, so asking twice within
         a tick gives the same command."""

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from swarmloc import pin_blas
+from swarmloc.process import pin_blas
 
 pin_blas()  # before numpy loads
 
@@ -133,10 +133,9 @@ class NetsimClient:
     def __init__(self, endpoint: str, swarm: str):
         import zenoh
 
-        from swarmloc import wire
-
         from agents.control import lookup
-        from swarmloc import auth
+        from swarmloc import wire
+        from swarmloc.wire import auth
 
         self.wire, self.keys = wire, wire.Keys(swarm)
         # A run seals its frames (docs/security.md): control requests need its key.
@@ -145,7 +144,7 @@ class NetsimClient:
         self.session = zenoh.open(zenoh.Config.from_json5(wire.zenoh_config("client", connect=[endpoint])))
 
     def request(self, op: str, args: dict | None = None, timeout: float = 5.0) -> dict:
-        from swarmloc.messages import Control, Reply
+        from swarmloc.wire.messages import Control, Reply
 
         payload = self.wire.encode(Control(op, args or {}), 0, 1)
         if self.sealer is not None:
@@ -171,3 +170,31 @@ class NetsimClient:
 
     def close(self):
         self.session.close()
+
+
+_SPIN = """
+import time
+p0, t0 = time.process_time(), time.monotonic()
+while time.monotonic() - t0 < {seconds}:
+    sum(range(1000))
+print((time.process_time() - p0) / (time.monotonic() - t0))
+"""
+
+
+def spare_cores(processes: int = 2, seconds: float = 1.0) -> float:
+    """How many cores this machine can give us right now: `processes` spinning processes run for
+    `seconds` of wall time and report the CPU share each got (2.0 on a quiet 2-core machine,
+    about 1.0 beside two processes burning a core each)."""
+    procs = [subprocess.Popen([sys.executable, "-c", _SPIN.format(seconds=seconds)], stdout=subprocess.PIPE, text=True)
+             for _ in range(processes)]
+    return sum(float(p.communicate(timeout=seconds + 60)[0]) for p in procs)
+
+
+def require_spare_cores(need: float, why: str) -> float:
+    """Skip, saying so, unless the machine has `need` cores to spare: for a property that only
+    means something with spare CPU (keeping up in real time), never for one the protocol
+    guarantees."""
+    have = spare_cores()
+    if have < need:
+        pytest.skip(f"needs {need:.1f} spare cores, the machine gives {have:.2f} now: {why}")
+    return have

@@ -3,9 +3,9 @@
 import numpy as np
 
 from netsim.sim import Simulation
-from swarmloc.estimators.ukf_ccl import CentralizedUKF
-from swarmloc.messages import Sensors
-from swarmloc.runner import InProcessRunner, make_nodes
+from swarmloc.estimators.ukf.ccl import CentralizedUKF
+from swarmloc.experiment.runner import InProcessRunner, make_nodes
+from swarmloc.wire.messages import Sensors
 
 
 def centralized(sc):

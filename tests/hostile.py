@@ -20,7 +20,7 @@ import numpy as np
 import zenoh
 
 from swarmloc import wire
-from swarmloc.messages import DclCommit, DclLog, Done, EstimateMsg
+from swarmloc.wire.messages import DclCommit, DclLog, Done, EstimateMsg
 
 OVERSIZE = b"\x00" * (wire.MAX_FRAME_BYTES + 4096)  # over our limit, under Zenoh's: reaches the callbacks
 

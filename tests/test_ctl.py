@@ -1,10 +1,10 @@
-"""CSL-CTL by majorization (swarmloc.ctl): convergence, the majorizer property, fixed nodes,
+"""CSL-CTL by majorization (swarmloc.estimators.ctl.majorization): convergence, the majorizer property, fixed nodes,
 the unscented covariance against Monte Carlo, the anchor least squares, input checks."""
 
 import numpy as np
 import pytest
 
-from swarmloc import ctl
+from swarmloc.estimators.ctl import majorization as ctl
 
 # Four agents around a target, ranges 130-220 m: well conditioned.
 TRUTH = np.array([[0.0, 0.0], [300.0, 20.0], [50.0, 250.0], [280.0, 300.0], [150.0, 120.0]])
@@ -193,6 +193,7 @@ def test_ls_target_exact_and_with_prior():
     assert np.linalg.eigvalsh(cov - cov2)[0] > 0
 
 
+@pytest.mark.slow
 def test_ls_target_covariance_matches_monte_carlo():
     rng = np.random.default_rng(7)
     anchors, target = TRUTH[:4], TRUTH[4]

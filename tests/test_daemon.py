@@ -3,9 +3,9 @@
 import numpy as np
 
 from agents.daemon import AgentConfig, AgentDaemon
-from swarmloc import scenario as S
-from swarmloc.messages import OdometryMsg, Sensors
-from swarmloc.runner import make_nodes
+from swarmloc.experiment import scenario as S
+from swarmloc.experiment.runner import make_nodes
+from swarmloc.wire.messages import OdometryMsg, Sensors
 
 
 def restarted(tmp_path, content: bytes | None):

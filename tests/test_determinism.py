@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 import yaml
-
 from helpers import in_process
-from swarmloc import scenario as S
+
+from swarmloc.experiment import scenario as S
 
 pytestmark = pytest.mark.slow
 

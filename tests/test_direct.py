@@ -15,14 +15,14 @@ from collections import deque
 import numpy as np
 import pytest
 import zenoh
-
 from conftest import free_port
+
 from netsim.sim import Simulation
-from swarmloc import scenario as S
 from swarmloc import wire
-from swarmloc.messages import Reply
+from swarmloc.experiment import scenario as S
+from swarmloc.experiment.runner import make_nodes
 from swarmloc.node import Timers
-from swarmloc.runner import make_nodes
+from swarmloc.wire.messages import Reply
 
 KILLED, AT = 4, 6  # agent 4 dies at the start of tick 6; the others list it for three more ticks
 

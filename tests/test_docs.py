@@ -6,12 +6,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from helpers import in_process
-from swarmloc import scenario as S
-from swarmloc.estimators.ukf_ccl import CentralizedUKF
-from swarmloc.messages import Sensors
-from swarmloc.results import compute_references, frames_from_arrays, write_run
+
+from swarmloc.estimators.ukf.ccl import CentralizedUKF
+from swarmloc.experiment import scenario as S
+from swarmloc.experiment.results import compute_references, frames_from_arrays
+from swarmloc.experiment.rundir import write_run
+from swarmloc.wire.messages import Sensors
 
 ROOT = Path(__file__).resolve().parent.parent
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
@@ -42,6 +43,7 @@ def test_every_link_resolves_inside_the_repository(page):
     assert "../shared" not in page.read_text()
 
 
+@pytest.mark.slow
 def test_ukf_ccl_rebuilt_from_sensors_npz_in_the_documented_order(tmp_path):
     """docs/run-format.md: a tick's ranges apply in (m, n, q) order, a stable sort of the
     rows by tick, m, n. Following it reproduces the run's ukf-ccl; file order does not."""

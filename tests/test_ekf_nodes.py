@@ -1,5 +1,5 @@
-"""The UAS EKF node and the distributed EKF-CI / naive nodes (swarmloc/estimators/ekf.py,
-ekf_ci.py; Goel, Kealy, Lohani 2016, sections 3-4), on synthetic flights from netsim/uas.py.
+"""The UAS EKF node and the distributed EKF-CI / naive nodes (swarmloc/estimators/ekf/local.py,
+ekf_ci.py; Goel, Kealy, Lohani 2016, sections 3-4), on synthetic flights from netsim/world/uas_sensors.py.
 
 Convention of the frames built here (the one ekf.py documents): tick k's IMU intervals end at
 t_k = k * TICK, the alignment is the state at t_0, GNSS and relative positions are taken at t_k.
@@ -11,14 +11,16 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from netsim import uas
-from swarmloc import fusion, ins, wire
+from netsim.world import uas_sensors as uas
+from swarmloc import wire
 from swarmloc.estimators import REGISTRY
-from swarmloc.estimators.ekf import EkfNode, InsEkf
-from swarmloc.estimators.ekf_ci import CiNode, NaiveNode
+from swarmloc.estimators.ekf.ci import CiNode, NaiveNode
+from swarmloc.estimators.ekf.local import EkfNode, InsEkf
 from swarmloc.estimators.settings import CiSettings
-from swarmloc.messages import AlignMsg, Beacon, GnssMsg, ImuMsg, PseudorangesMsg, RelPosMsg, Sensors
-from swarmloc.models import UasIns
+from swarmloc.filters import fusion
+from swarmloc.models import ins
+from swarmloc.models.motion import UasIns
+from swarmloc.wire.messages import AlignMsg, Beacon, GnssMsg, ImuMsg, PseudorangesMsg, RelPosMsg, Sensors
 
 DT, ROWS = 0.01, 10  # 100 Hz IMU, 10 intervals a tick
 TICK = DT * ROWS
@@ -156,6 +158,7 @@ def test_perfect_imu_without_gnss_tracks_truth():
     assert not node.drops
 
 
+@pytest.mark.slow
 def test_gnss_fixes_hold_the_error_at_noise_level_and_nees_is_chi_square():
     """(b) Noisy MEMS IMU and a 2 m fix at 1 Hz: 10 Monte Carlo runs of 60 s. At every epoch after
     5 s the run-averaged NEES (15 states; the clock is not observable from fixes) must lie in the
@@ -233,6 +236,7 @@ def test_pseudoranges_converge_the_clock_bias():
 # --------------------------------------------------------------------------- EKF-CI
 
 
+@pytest.mark.slow
 def test_ci_keeps_the_node_without_gnss_bounded_and_without_sharing_it_drifts():
     """(d) Node 0 has GNSS, node 1 none; both measure their relative position (5 cm) at 1 Hz.
     Node 1 alone drifts by hundreds of metres in 60 s; fusing node 0's estimate with CI it stays
@@ -339,6 +343,7 @@ def test_ci_fusion_never_grows_its_criterion(criterion):
     assert used >= ticks // EPOCH // 2  # the node without GNSS takes in its neighbour's fix
 
 
+@pytest.mark.slow
 def test_naive_fusion_is_overconfident_and_ci_is_not():
     """The classic result behind CI: two nodes repeatedly fusing each other's estimates (node 0
     with GNSS, node 1 without). Naive fusion counts the shared information again at every
@@ -412,7 +417,7 @@ def test_beacon_bookkeeping():
 def test_ranges_are_ignored_and_naive_fusion_is_plain_kalman():
     """A range gives no explicit position (section 4): the CI node ignores it. The naive node
     fuses the implied position with the Kalman update, omega meaningless."""
-    from swarmloc.messages import RangeMsg
+    from swarmloc.wire.messages import RangeMsg
 
     ticks = 10
     flights = pair(0.0, ticks, [6])
@@ -451,7 +456,7 @@ def test_missed_ticks_are_coasted_and_resume_restarts_the_filter():
 
 
 def test_registry_builds_the_nodes_from_a_scenario():
-    from swarmloc import scenario
+    from swarmloc.experiment import scenario
 
     sc = scenario.parse({"version": scenario.SCENARIO_VERSION, "name": "t", "world": {"agents": [
         {"id": 1, "model": "uas-ins", "start": [0.0, 0.0, 50.0]},

@@ -7,11 +7,11 @@ import time
 
 import pytest
 import zenoh
-
 from conftest import NetsimClient, agent_pid
-from swarmloc import scenario as S
-from swarmloc import wire
 from test_hostile import rss_mb
+
+from swarmloc import wire
+from swarmloc.experiment import scenario as S
 
 pytestmark = pytest.mark.slow
 
@@ -50,9 +50,9 @@ def test_a_flooded_agent_keeps_estimating_in_bounded_memory(cli, tmp_path):
     pid = agent_pid(cli.swarm, 2)
     ns = NetsimClient(cli.endpoint, cli.swarm)
     keys = wire.Keys(cli.swarm)
-    from swarmloc.messages import Beacon
-
     import numpy as np
+
+    from swarmloc.wire.messages import Beacon
 
     forged = wire.encode(Beacon(0, np.zeros(2), np.eye(2), {}), 1, 1, None)
     try:

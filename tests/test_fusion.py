@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from swarmloc import fusion
-from swarmloc.measurements import Bearing, RelativePosition, StateLayout
+from swarmloc.filters import fusion
+from swarmloc.models.measurements import Bearing, RelativePosition, StateLayout
 
 
 def random_spd(n, rng, floor=0.1):

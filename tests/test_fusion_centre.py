@@ -1,24 +1,25 @@
 """The centralized EKF of Goel et al. 2016, section 3: JointEkf / CentralizedEkf (offline
 reference "ekf-ccl") and the fusion-centre roles (FusionCentre on a ground station,
-CentreClient on each UAS, "ekf-centre"), on synthetic UAS data made here with netsim/uas.py."""
+CentreClient on each UAS, "ekf-centre"), on synthetic UAS data made here with netsim/world/uas_sensors.py."""
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
 import pytest
+from msgspec.structs import replace
 
-from netsim import uas
-from swarmloc import ins, wire
-from swarmloc.estimators.ekf import EkfNode, placeholder_prior
-from swarmloc.estimators.ekf_ccl import CentralizedEkf, JointEkf
-from swarmloc.estimators.fusion_centre import CentreClient, FusionCentre
+from netsim.world import uas_sensors as uas
+from swarmloc import wire
+from swarmloc.estimators.ekf.ccl import CentralizedEkf, JointEkf
+from swarmloc.estimators.ekf.centre import CentreClient, FusionCentre
+from swarmloc.estimators.ekf.local import EkfNode, placeholder_prior
 from swarmloc.estimators.settings import CentreSettings
-from swarmloc.messages import AlignMsg, CentreData, CentreEstimate, GnssMsg, ImuMsg, RelPosMsg, Sensors
+from swarmloc.models import ins
+from swarmloc.models.motion import MOTION_MODELS
 from swarmloc.node import Send, Timer
-from swarmloc.models import MOTION_MODELS
+from swarmloc.wire.messages import AlignMsg, CentreData, CentreEstimate, GnssMsg, ImuMsg, RelPosMsg, Sensors
 
 UAS_MODEL = MOTION_MODELS["uas-ins"]
 IMU = ins.ImuSpec()
@@ -131,6 +132,7 @@ def test_joint_ekf_members_come_and_go_in_id_order():
         joint.add(4, np.zeros(15), np.eye(16))
 
 
+@pytest.mark.slow
 def test_relative_positions_bound_a_uas_without_gnss():
     """The paper's section 5.1 / fig. 7 case: UAS 2 has no GNSS, UAS 1 has; sharing relative
     positions in the joint filter keeps UAS 2 near UAS 1's accuracy, while alone its INS drifts."""
@@ -303,7 +305,7 @@ def test_bad_messages_are_dropped_and_counted():
     for _ in range(3):
         last = swarm.tick()
     centre, client = swarm.centre, swarm.clients[1]
-    good = dataclasses.replace(last[1], k=3)  # a frame of the next tick, as it could be
+    good = replace(last[1], k=3)  # a frame of the next tick, as it could be
     x, P = client.x.copy(), client.P.copy()
     nan_x = x.copy()
     nan_x[4] = np.nan
@@ -366,7 +368,7 @@ def test_the_centre_is_deterministic():
 
 
 def uas_scenario(stations=(0,), **params):
-    from swarmloc import scenario
+    from swarmloc.experiment import scenario
 
     agents = [{"id": s, "model": "ground-station", "start": [0.0, 0.0, 0.0]} for s in stations]
     agents += [{"id": a, "model": "uas-ins", "start": [30.0 * a, 0.0, 50.0]} for a in (1, 2)]
@@ -426,8 +428,8 @@ def test_relative_positions_in_information_form_are_the_stacked_update():
     import copy
 
     from netsim.sim import Simulation
-    from swarmloc import scenario as S
-    from swarmloc.estimators.ekf_ccl import CentralizedEkf
+    from swarmloc.estimators.ekf.ccl import CentralizedEkf
+    from swarmloc.experiment import scenario as S
 
     sc = S.load("goel10").with_overrides(**{"clock.duration": 2.0, "sensors.gnss.agents": [2, 4, 6, 8, 10]})
     sim = Simulation(sc)

@@ -10,9 +10,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from helpers import in_process
-from swarmloc import scenario as S
+
+from swarmloc.experiment import scenario as S
 
 pytestmark = pytest.mark.slow
 HOSTILE = Path(__file__).with_name("hostile.py")
@@ -65,10 +65,10 @@ def test_large_frames_are_dropped_before_they_are_buffered(cli, tmp_path):
     message limit for the agent, uncopied and counted by netsim), and neither process keeps
     the memory (before the fix: agent 88 -> 160 MB, netsim 67 -> 280 MB)."""
     import zenoh
-
     from conftest import agent_pid, netsim_pid
-    from swarmloc import wire
     from test_processes import long_scenario
+
+    from swarmloc import wire
 
     _, path = long_scenario(tmp_path)
     run = cli.start_run(str(path), tmp_path / "run")

@@ -1,4 +1,4 @@
-"""Strapdown INS and its 16-state error model (swarmloc/ins.py)."""
+"""Strapdown INS and its 16-state error model (swarmloc/models/ins.py)."""
 
 import math
 
@@ -7,8 +7,8 @@ import pytest
 from scipy.linalg import expm
 from scipy.spatial.transform import Rotation
 
-from netsim import uas
-from swarmloc import ins
+from netsim.world import uas_sensors as uas
+from swarmloc.models import ins
 
 
 def level_hover_imu() -> ins.ImuSample:

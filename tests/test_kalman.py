@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from swarmloc import kalman
+from swarmloc.filters import kalman
 
 
 def random_spd(n, rng):

@@ -1,4 +1,4 @@
-"""Bounds on what the drivers take in (swarmloc/limits.py): the inbox and the rate limit."""
+"""Bounds on what the drivers take in (swarmloc/wire/limits.py): the inbox and the rate limit."""
 
 import queue
 import threading
@@ -6,7 +6,7 @@ import time
 
 import pytest
 
-from swarmloc.limits import Inbox, RateLimit
+from swarmloc.wire.limits import Inbox, RateLimit
 
 
 def test_the_inbox_drops_what_does_not_fit_and_counts_it():

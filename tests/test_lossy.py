@@ -12,9 +12,9 @@ import pytest
 from scipy.stats import chi2
 
 from netsim.sim import Simulation
-from swarmloc import scenario as S
-from swarmloc.results import compute_references, nees_series, position_errors
-from swarmloc.runner import InProcessRunner, make_nodes
+from swarmloc.experiment import scenario as S
+from swarmloc.experiment.results import compute_references, nees_series, position_errors
+from swarmloc.experiment.runner import InProcessRunner, make_nodes
 
 RUNS = 20
 PARTITION, HEAL = 60.0, 100.0
@@ -100,6 +100,7 @@ def inside(nees):
     return {a: float(((v.mean(axis=(0, 2)) >= lo) & (v.mean(axis=(0, 2)) <= hi)).mean()) for a, v in nees.items()}
 
 
+@pytest.mark.slow
 def test_loss_and_partition_consistent_like_the_centralized_filter(lossy_partitioned):
     nees, err, drops, after_heal = lossy_partitioned
     lo, hi = bounds()
@@ -115,6 +116,7 @@ def test_loss_and_partition_consistent_like_the_centralized_filter(lossy_partiti
     assert sum(drops.values()) > 0  # the faults really bit
 
 
+@pytest.mark.slow
 def test_loss_alone_is_consistent_like_the_centralized_filter():
     """20% loss without partition: chains retry and route around; NEES inside the two-sided
     95% bounds about as often as UKF-CCL's."""

@@ -7,12 +7,24 @@ import time
 
 import numpy as np
 import pytest
-
-from agents.mavlink import (Attitude, FlightController, GnssFix, Imu, Link, Odometry, OutputRate,
-                            enu_from_ned, flu_from_frd, mavlink, quat_enu_from_ned, yaw_enu_from_ned)
-from swarmloc import ins
-from fake_fc import G, ORIGIN, FakeFlightController
+from fake_fc import ORIGIN, FakeFlightController, G
 from pymavlink.quaternion import QuaternionBase
+
+from agents.companion.mavlink import (
+    Attitude,
+    FlightController,
+    GnssFix,
+    Imu,
+    Link,
+    Odometry,
+    OutputRate,
+    enu_from_ned,
+    flu_from_frd,
+    mavlink,
+    quat_enu_from_ned,
+    yaw_enu_from_ned,
+)
+from swarmloc.models import ins
 
 
 def udp_port() -> int:
@@ -59,6 +71,12 @@ def test_output_rate_holds_its_rate_under_jitter():
         now += 0.02 + rng.uniform(-0.004, 0.004)  # 50 Hz estimates with jitter
     assert 99 <= sent <= 101
     assert rate.ready(100.0) and not rate.ready(100.05)  # after a gap: one, not a burst
+    # A call late by most of a period catches the schedule up, but not back to back (an
+    # autopilot keeps one sample per filter period and drops the other).
+    rate = OutputRate(30.0)
+    assert rate.ready(0.0) and rate.ready(1 / 30 + 0.03)
+    assert not rate.ready(2 / 30 + 0.001) and rate.due_in(2 / 30 + 0.001) > 0
+    assert rate.ready(1 / 30 + 0.03 + 1 / 60 + 1e-9)
 
 
 # --------------------------------------------------------------------------- over UDP
@@ -138,6 +156,14 @@ def test_send_estimate_reaches_the_fc_as_odometry(port):
         time.sleep(0.1)
         assert fc.send_estimate(123.5, p_enu, P)
         time.sleep(0.1)  # the fake's loop reads every 20 ms
+        # Our HEARTBEAT goes at 1 Hz; the first may leave before udpin knows the fake's address,
+        # so wait for the next (up to 3 s) rather than assume the 1.2 s above held two of them.
+        ours = lambda: any(m.get_type() == "HEARTBEAT" and m.type == mavlink.MAV_TYPE_ONBOARD_CONTROLLER  # noqa: E731
+                           for m in list(sim.received))
+        deadline = time.monotonic() + 3.0
+        while not ours() and time.monotonic() < deadline:
+            fc.poll()
+            time.sleep(0.02)
     odometry = [m for m in sim.received if m.get_type() == "ODOMETRY"]
     assert 10 <= sent <= 11 and len(odometry) == sent
     assert any(m.get_type() == "HEARTBEAT" and m.type == mavlink.MAV_TYPE_ONBOARD_CONTROLLER for m in sim.received)

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from swarmloc import measurements as ms
-from swarmloc.measurements import MEASUREMENT_MODELS, StateLayout
+from swarmloc.models import measurements as ms
+from swarmloc.models.measurements import MEASUREMENT_MODELS, StateLayout
 
 LAYOUTS = {
     "planar": StateLayout.planar(),
@@ -15,7 +15,7 @@ LAYOUTS = {
     "planar-clock": StateLayout(3, slice(0, 2), clock=2),
     "pose3d": StateLayout.pose3d(),
     "uas16": StateLayout.uas16(),
-    # swarmloc/ins.py's error state: attitude columns w.r.t. a world-frame small rotation.
+    # swarmloc/models/ins.py's error state: attitude columns w.r.t. a world-frame small rotation.
     "uas16-rotvec": StateLayout.uas16("rotation-vector"),
     # Position not first: nothing may assume it is.
     "pose3d-shuffled": StateLayout(7, slice(4, 7), attitude=slice(0, 3), clock=3),

@@ -1,4 +1,4 @@
-"""swarmloc.mrclam: the UTIAS MR.CLAM loader (Leung et al., IJRR 2011) and each quirk it handles.
+"""swarmloc.datasets.mrclam: the UTIAS MR.CLAM loader (Leung et al., IJRR 2011) and each quirk it handles.
 
 tests/data/mrclam_excerpt is Dataset6 cut by write_excerpt as the union of three short windows
 of absolute time (the format needs no continuity; see its README.md):
@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from swarmloc import mrclam as M
+from swarmloc.datasets import mrclam as M
 
 ROOT = Path(__file__).resolve().parents[1]
 EXCERPT = ROOT / "tests" / "data" / "mrclam_excerpt"

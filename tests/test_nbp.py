@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from swarmloc import nbp
-from swarmloc.nbp import GaussianMixture
+from swarmloc.estimators.nbp import mixtures as nbp
+from swarmloc.estimators.nbp.mixtures import GaussianMixture
 
 
 def random_spd(n, rng, floor=0.1):

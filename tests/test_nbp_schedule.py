@@ -1,10 +1,10 @@
-"""The dNBP message schedule (swarmloc.nbp_schedule): node rule and reference rounds."""
+"""The dNBP message schedule (swarmloc.estimators.nbp.schedule): node rule and reference rounds."""
 
 import random
 
 import pytest
 
-from swarmloc.nbp_schedule import Schedule, simulate
+from swarmloc.estimators.nbp.schedule import Schedule, simulate
 
 # Fig. 3-4 of Wan et al. 2014: UAV1-3 normal, UAV4-6 fault. Edges inferred from the text of
 # section 4.1 (the figure itself is not in the extracted text):

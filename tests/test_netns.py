@@ -24,8 +24,8 @@ import pytest
 import yaml
 
 from netsim.sim import Simulation
-from swarmloc import scenario as S
-from swarmloc.runner import InProcessRunner, make_nodes
+from swarmloc.experiment import scenario as S
+from swarmloc.experiment.runner import InProcessRunner, make_nodes
 
 pytestmark = [
     pytest.mark.slow,
@@ -119,7 +119,7 @@ def recording(tmp_path_factory):
 # longer than any fixed margin one would want to wait for.)
 WARM_START = """
 import sys, time, pathlib
-import agents.cli, agents.config, agents.daemon, agents.sources, swarmloc.results
+import agents.cli, agents.config, agents.daemon, agents.companion.sources, swarmloc.experiment.results
 config = pathlib.Path(sys.argv[1])
 print("warm", file=sys.stderr, flush=True)
 while not config.exists():

@@ -2,15 +2,15 @@
 and `python -m agents.daemon --spec` builds, without a scenario, pydantic or a CLI framework."""
 
 import json
-from pathlib import Path
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from swarmloc import scenario as S
 from swarmloc.estimators import REGISTRY
+from swarmloc.experiment import scenario as S
 from swarmloc.node import NodeSpec
 
 CASES = [("wang2019", "ukf-dcl", {}), ("wang2019", "ukf-dcl", {"max_chain": 3}), ("wang2019", "il", {}),
@@ -45,10 +45,10 @@ def test_a_spec_names_only_swarmloc_classes():
 
 
 def test_the_agent_process_imports_no_scenario_tooling():
-    code = ("import sys, agents.daemon, swarmloc.estimators.ukf_dcl, swarmloc.estimators.ekf_ci, "
-            "swarmloc.estimators.fusion_centre, swarmloc.estimators.il, swarmloc.estimators.csl_ctl; "
+    code = ("import sys, agents.daemon, swarmloc.estimators.ukf.dcl, swarmloc.estimators.ekf.ci, "
+            "swarmloc.estimators.ekf.centre, swarmloc.estimators.il, swarmloc.estimators.ctl.csl_ctl; "
             "print(sorted({m.split('.')[0] for m in sys.modules} & {'pydantic', 'typer', 'yaml', 'rich', 'scipy', "
-            "'matplotlib', 'swarmloc.scenario'}), 'swarmloc.scenario' in sys.modules)")
+            "'matplotlib', 'swarmloc.experiment.scenario'}), 'swarmloc.experiment.scenario' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[] False", out
 

@@ -6,10 +6,10 @@ import matplotlib.image
 import matplotlib.pyplot as plt
 import numpy as np
 import pytest
-
-from swarmloc import plots
-from swarmloc import scenario as S
 from helpers import in_process
+
+from swarmloc.experiment import plots
+from swarmloc.experiment import scenario as S
 
 # Close together on purpose, several in one tick: their labels would overlap unless stacked.
 FAULTS = [
@@ -132,3 +132,84 @@ def test_a_burst_of_faults_is_grouped_within_the_level_limit():
     assert sorted(i for *_, members in labels for i in members) == list(range(31))
     assert ("31", 50.0, 0, [30]) in labels
     assert any("-" in text for text, *_ in labels)
+
+
+# ------------------------------------------------------------------ run plots a reader can read
+
+
+@pytest.fixture(scope="module")
+def quiet_run():
+    """wang2019 for 10 s: no fault, infinite range, every frame delivered; ukf-dcl equals ukf-ccl."""
+    from swarmloc.experiment.results import compute_references
+
+    sc = S.load("wang2019").with_overrides(**{"clock.duration": 10.0})
+    record, _, sim = in_process(sc)
+    compute_references(sc, record, ["il", "ukf-ccl"])
+    return record, sim.radio_arrays()
+
+
+def test_identical_estimators_are_dashed_and_said_to_be(quiet_run):
+    record, _ = quiet_run
+    traces = {a: record.trace(a) for a in ("il", "ukf-dcl", "ukf-ccl")}
+    styles = plots._line_styles(record, traces)
+    assert styles["ukf-ccl"]["ls"] != "-" and "identical to UKF-DCL" in styles["ukf-ccl"]["label"]
+    assert styles["ukf-dcl"]["ls"] == "-" and styles["il"]["ls"] == "-" and "identical" not in styles["il"]["label"]
+
+
+def test_a_fault_free_links_plot_shows_its_traffic_not_blank_panels(quiet_run):
+    _, radio = quiet_run
+    fig = plots.links_figure(radio)
+    names = [ax.get_label() for ax in fig.axes]
+    plt.close(fig)
+    assert names == ["traffic"] and "every frame delivered, no fault" in fig.get_suptitle()
+
+
+def test_receptions_are_binned_so_sparse_beacons_leave_no_empty_bins():
+    h = plots.LinkHistory.__new__(plots.LinkHistory)
+    h.t = np.arange(601) * 0.1
+    h.edges = np.r_[h.t, 60.1]
+    h.outcomes = np.zeros((1, 601))
+    h.outcomes[0, 10::10] = 2  # beacons once a second, ticks of 0.1 s
+    counts, edges, width = h.binned_outcomes()
+    assert width == pytest.approx(1.0) and (counts[0, 1:] == 2).all() and edges.size == counts.shape[1] + 1
+
+
+def test_data_over_decades_get_a_log_axis():
+    assert plots._wide([np.r_[np.full(50, 900.0), np.linspace(0.5, 3, 500)]])
+    assert not plots._wide([np.linspace(0.5, 3, 500)])
+
+
+def test_many_agents_are_one_panel_of_their_spread(tmp_path):
+    from swarmloc.experiment.results import RunRecord
+
+    n = 20
+    r = RunRecord(list(range(1, n + 1)), {a: "planar-speed-heading" for a in range(1, n + 1)})
+    t = np.arange(30.0)
+    errors = {"dnbp": np.r_[np.full((3, n), 600.0), np.random.default_rng(0).uniform(1, 5, (27, n))]}
+    path = plots._per_agent(tmp_path / "e.png", r, t, errors, "position error (m)")
+    height, width, _ = matplotlib.image.imread(path).shape
+    assert height < 7 * plots.DPI  # not 20 panels 2294 px high
+
+
+@pytest.mark.parametrize("n", [4, 20])
+def test_the_bound_is_drawn_in_each_panel_and_in_the_spread(tmp_path, monkeypatch, n):
+    from swarmloc.experiment.results import RunRecord
+
+    r = RunRecord(list(range(1, n + 1)), {a: "planar-speed-heading" for a in range(1, n + 1)})
+    t = np.arange(30.0)
+    rng = np.random.default_rng(1)
+    errors, floor = {"il": rng.uniform(1, 5, (30, n))}, rng.uniform(0.5, 1, (30, n))
+    closed = []
+    monkeypatch.setattr(plots.plt, "close", closed.append)
+    plots._per_agent(tmp_path / "e.png", r, t, errors, "position error (m)", floor=floor)
+    (fig,) = closed
+    drawn = [(ax, line) for ax in fig.axes for line in ax.get_lines() if line.get_label().startswith(plots.PCRB_LABEL)]
+    if n <= plots.MAX_PANELS:  # each agent's own bound in its own panel
+        assert len(drawn) == n
+        for ci, (_, line) in enumerate(drawn):
+            np.testing.assert_array_equal(line.get_ydata(), floor[:, ci])
+    else:  # one panel: the median bound over the agents
+        ((_, line),) = drawn
+        np.testing.assert_allclose(line.get_ydata(), np.median(floor, axis=1))
+    monkeypatch.undo()
+    plt.close(fig)

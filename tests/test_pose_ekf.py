@@ -1,4 +1,4 @@
-"""ekf, ekf-ci and ekf-ccl on planar-pose robots (swarmloc/estimators/pose_ekf.py), on netsim's
+"""ekf, ekf-ci and ekf-ccl on planar-pose robots (swarmloc/estimators/ekf/pose.py), on netsim's
 simulated world: unicycles driving circles in a 15 m x 8 m area with 15 mapped landmarks,
 observing the landmarks and each other by range and body-frame bearing within 4 m."""
 
@@ -6,16 +6,16 @@ import numpy as np
 import pytest
 
 from netsim.sim import Simulation
-from swarmloc import fusion
-from swarmloc import scenario as S
 from swarmloc.estimators import REGISTRY, make_nodes
-from swarmloc.estimators.pose_ekf import POINT, PoseCentralizedEkf, PoseCiNode, PoseEkf, PoseEkfNode, split_ci_update
-from swarmloc.kalman import Gate
-from swarmloc.measurements import RangeBearing, StateLayout
-from swarmloc.messages import Beacon, OdometryMsg, PoseBeacon, RangeBearingMsg, Sensors
-from swarmloc.models import MOTION_MODELS, Odometry
+from swarmloc.estimators.ekf.pose import POINT, PoseCentralizedEkf, PoseCiNode, PoseEkf, PoseEkfNode, split_ci_update
+from swarmloc.experiment import scenario as S
+from swarmloc.experiment.runner import InProcessRunner
+from swarmloc.filters import fusion
+from swarmloc.filters.kalman import Gate
+from swarmloc.models.measurements import RangeBearing, StateLayout
+from swarmloc.models.motion import MOTION_MODELS, Odometry
 from swarmloc.node import LANDMARK, RANGE_BEARING, NodeSpec, estimate_of
-from swarmloc.runner import InProcessRunner
+from swarmloc.wire.messages import Beacon, OdometryMsg, PoseBeacon, RangeBearingMsg, Sensors
 
 MODEL = MOTION_MODELS["planar-pose"]
 POSE = StateLayout.planar_pose()
@@ -154,6 +154,7 @@ def with_landmarks():
     return out
 
 
+@pytest.mark.slow
 def test_ekf_with_landmarks_beats_dead_reckoning_and_is_consistent(with_landmarks):
     # Measured (RMSE m, NEES/dim) per seed: il 0.17-0.32, ekf 0.019-0.023 with NEES 1.04-1.40.
     for s in with_landmarks:
@@ -162,6 +163,7 @@ def test_ekf_with_landmarks_beats_dead_reckoning_and_is_consistent(with_landmark
     assert 0.7 < nees < 1.5
 
 
+@pytest.mark.slow
 def test_ekf_ccl_with_robot_observations_beats_ekf_alone(with_landmarks):
     # Measured: 7-8 % lower RMSE on every seed (the landmarks, several in view at all times,
     # leave little to gain), NEES/dim 1.02-1.42.
@@ -169,6 +171,7 @@ def test_ekf_ccl_with_robot_observations_beats_ekf_alone(with_landmarks):
     assert 0.7 < np.mean([s["ekf-ccl"][1] for s in with_landmarks]) < 1.5
 
 
+@pytest.mark.slow
 def test_ekf_ci_without_landmarks_beats_dead_reckoning_and_is_not_overconfident():
     """The bearings between robots bound each one's heading, which is what a gyro loses: CI
     cuts the error of dead reckoning by 30-45 % (measured 0.15-0.27 m against 0.22-0.47 m over 30 s)."""
@@ -376,7 +379,7 @@ def test_the_registry_configures_the_three_on_planar_pose():
 
 
 def test_ekf_ccl_of_a_swarm_of_uas_and_robots_runs_the_two_apart():
-    from swarmloc.messages import AlignMsg
+    from swarmloc.wire.messages import AlignMsg
 
     sc = S.parse({"version": S.SCENARIO_VERSION, "name": "mixed", "world": {"agents": [
         {"id": 1, "model": "uas-ins", "start": [0.0, 0.0, 50.0]},

@@ -9,12 +9,12 @@ import time
 import numpy as np
 import pytest
 import zenoh
-
 from conftest import swarm_pids
 from helpers import ccl_without, centralized, in_process
-from swarmloc import scenario as S
+
 from swarmloc import wire
-from swarmloc.messages import Reply
+from swarmloc.experiment import scenario as S
+from swarmloc.wire.messages import Reply
 
 pytestmark = pytest.mark.slow
 TOL = 1e-9
@@ -60,9 +60,9 @@ def test_inject_cut_and_restore_live(cli, tmp_path):
     run = cli.start_run(str(path), out)
     cli.wait_tick(100, run)
     # Malformed control requests get an error reply and never take netsim down.
-    from swarmloc.messages import Control
-
     from conftest import NetsimClient
+
+    from swarmloc.wire.messages import Control
 
     ns = NetsimClient(cli.endpoint, cli.swarm)  # its sealer: the run's key (docs/security.md)
     session = zenoh.open(zenoh.Config.from_json5(wire.zenoh_config("client", connect=[cli.endpoint])))
@@ -102,7 +102,7 @@ def test_inject_cut_and_restore_live(cli, tmp_path):
     assert (pair & window & (radio["reason"] == "fault")).any()
     assert (pair & (radio["k"] >= kr) & radio["delivered"]).any()
     # Chains routed around the cut: UKF-DCL equals UKF-CCL minus the ranges between 1 and 2.
-    from swarmloc.results import frames_from_arrays
+    from swarmloc.experiment.results import frames_from_arrays
 
     sensors = frames_from_arrays(load_npz(out / "sensors.npz"))
     expected = ccl_without(sc, sensors, lambda k, a, b: {a, b} == {1, 2} and kc <= k <= kr)
@@ -138,6 +138,7 @@ def test_direct_mode_without_netsim(tmp_path):
     import sys
 
     from conftest import free_port
+
     from netsim.world import World
 
     sc = S.load("wang2019").with_overrides(**{"clock.duration": 15.0, "sensors.range.probability": 0.8})

@@ -22,8 +22,8 @@ from netsim import sim as S
 from netsim.channel import DROP_REASONS, REASON_CODE, Jammer, LogDistance, Outcome, RadioMedium, TxFrame
 from netsim.faults import FaultState
 from netsim.sim import Simulation
-from swarmloc import scenario as SC
-from swarmloc.faults import Cut, Loss, Partition, RadioOff
+from swarmloc.experiment import scenario as SC
+from swarmloc.experiment.faults import Cut, Loss, Partition, RadioOff
 from swarmloc.node import RadioRx, RadioTx
 
 SINR_OK_DB = 8.0
@@ -447,3 +447,24 @@ def test_array_and_object_interfaces_give_the_same_outcomes() -> None:
     objects, arrays = play(False), play(True)
     assert objects == arrays and len(objects) > 300
     assert [o.t for o in objects] == sorted(o.t for o in objects)
+
+
+def test_batch_deliveries_equal_the_radio_rx_list() -> None:
+    def run(batch: bool) -> list:
+        sim = _sim({"model": "log-distance"}, [{"at": 1.0, "action": "loss", "probability": 0.3}])
+        out = []
+        for k in range(4):
+            sim.tick()
+            frames = [RadioTx(a, None, 2 * k, bytes(60)) for a in sim.ids]
+            frames += [RadioTx(a, a % 7 + 1, 2 * k + 1, bytes(30)) for a in sim.ids[:3]]
+            for round_ in (frames[:-3], frames):  # a round without unicasts, one with
+                got = sim.exchange_batch(round_) if batch else sim.exchange(round_)
+                if isinstance(got, S.Deliveries):
+                    assert [(r.receiver, r.t, r.data, r.src, r.seq, r.unicast) for r in got] == list(got.raw())
+                    assert all(r.nack is None for r in got)
+                out.append((type(got).__name__, list(got)))
+        return out
+
+    batch, objects = run(True), run(False)
+    assert [b for _, b in batch] == [o for _, o in objects]
+    assert {kind for kind, _ in batch} == {"Deliveries", "list"} and {kind for kind, _ in objects} == {"list"}

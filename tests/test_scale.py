@@ -6,13 +6,17 @@ import json
 
 import numpy as np
 import pytest
+from conftest import require_spare_cores
 
-from swarmloc import scenario as S
+from swarmloc.experiment import scenario as S
 
 pytestmark = pytest.mark.slow
 
 
 def test_32_agents_keep_up_in_real_time_with_bounded_chains(cli, tmp_path):
+    # Keeping up is a claim about this machine's spare CPU, not about the protocol (which
+    # test_realtime.py's starved agent covers): measured first, skipped with the reason if absent.
+    require_spare_cores(1.6, "32 real-time agents at dt 0.5 s keep up only on a machine with its cores free")
     sc = S.load("swarm32").with_overrides(**{"clock.duration": 15.0})
     assert sc.clock.mode == "realtime" and len(sc.agent_ids) == 32 and sc.estimator.params["max_chain"] == 3
     path = tmp_path / "swarm32.yaml"

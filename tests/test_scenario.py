@@ -1,9 +1,10 @@
 """Scenario files: built-ins load, and every mistake names its field."""
 
+import numpy as np
 import pytest
 import yaml
 
-from swarmloc import scenario as S
+from swarmloc.experiment import scenario as S
 
 
 def test_builtins_load():
@@ -105,3 +106,64 @@ def test_a_planar_swarm_without_an_estimator_runs_ukf_dcl():
     data = S.load("wang2019").model_dump()
     del data["estimator"]
     assert S.parse(data).estimator.name == "ukf-dcl"
+
+
+def test_a_formation_generates_agents_on_its_arc_driving_at_its_centre():
+    d = base()
+    d["world"].pop("agents")
+    d["world"]["formation"] = {"count": 4, "center": [500.0, 0.0], "radius": 400.0, "spread_deg": 40.0}
+    sc = S.parse(d)
+    at = np.array([a.start for a in sc.world.agents])
+    assert [a.id for a in sc.world.agents] == [1, 2, 3, 4]
+    assert np.allclose(np.linalg.norm(at - [500.0, 0.0], axis=1), 400.0)
+    bearings = np.degrees(np.arctan2(at[:, 1], at[:, 0] - 500.0)) % 360
+    assert np.allclose(bearings, [160.0, 160 + 40 / 3, 200 - 40 / 3, 200.0])
+    for a, p in zip(sc.world.agents, at):  # each heads at the centre, straight
+        ahead = p + 400.0 * np.array([np.cos(a.heading), np.sin(a.heading)])
+        assert np.allclose(ahead, [500.0, 0.0], atol=1e-9) and a.motion.turn_rate == 0.0
+    # an override of the formation regenerates the agents; a dump holds the formation alone
+    closer = sc.with_overrides(**{"world.formation.radius": 300.0})
+    assert np.allclose(np.linalg.norm(np.array([a.start for a in closer.world.agents]) - [500.0, 0.0], axis=1), 300.0)
+    assert "agents" not in yaml.safe_load(closer.to_yaml())["world"]
+    assert S.parse(yaml.safe_load(closer.to_yaml())).world.agents == closer.world.agents
+
+
+def test_a_formation_and_agents_together_are_an_error():
+    d = base()
+    d["world"]["formation"] = {"count": 2, "center": [0.0, 0.0], "radius": 10.0}
+    with pytest.raises(S.ScenarioError, match="not both"):
+        S.parse(d)
+    d["world"].pop("agents")
+    d["world"]["formation"]["center"] = [0.0]
+    with pytest.raises(S.ScenarioError, match="world.formation.center"):
+        S.parse(d)
+
+
+def test_errors_are_in_the_schemas_words_not_pydantics():
+    bad = {"version": 1, "name": "x", "clock": 5, "seed": 1.5,
+           "world": {"agents": [{"id": 1, "start": [0, 0], "motion": {"kind": "zigzag"}},
+                                {"id": 2, "start": [0, 0], "motion": {"kind": "circle", "speed": -1}}], "landmark": []},
+           "sensors": {"range": {"probability": 2}}, "faults": [{"action": "explode", "at": 3}]}
+    with pytest.raises(S.ScenarioError) as info:
+        S.parse(bad)
+    text = str(info.value)
+    for internal in ("Input should", "Value error", "Extra inputs", "instance of", "NoneType", "(top level)"):
+        assert internal not in text, text
+    problems = dict(info.value.problems)
+    assert problems["clock"] == "must be a mapping of fields, got 5"
+    assert problems["seed"] == "must be a whole number, got 1.5"
+    assert problems["world.landmark"] == "unknown field"
+    assert problems["world.agents.0.motion"].startswith("unknown kind 'zigzag'; one of: circle, random")
+    assert problems["world.agents.1.motion.speed"] == "must be >= 0.0, got -1"
+    assert problems["faults.0"].startswith("unknown action 'explode'")
+    with pytest.raises(S.ScenarioError, match="got an empty file"):
+        S.parse(None)
+
+
+@pytest.mark.parametrize("name", ["csl-ctl", "il-ctl"])
+def test_an_estimator_of_targets_needs_targets(name):
+    with pytest.raises(S.ScenarioError) as info:
+        S.load("wang2019").with_overrides(estimator={"name": name, "params": {}})
+    assert dict(info.value.problems)["estimator"].startswith(f"{name} needs targets")
+    renamed = str(info.value.renamed("wang2019", {"estimator": "--estimator"}))
+    assert renamed.startswith(f"wang2019: --estimator: {name} needs targets")

@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 import yaml
 import zenoh
-
 from conftest import free_port
+
 from swarmloc import wire
-from swarmloc.messages import EstimateMsg, OdometryMsg, Reply, Sensors
+from swarmloc.wire.messages import EstimateMsg, OdometryMsg, Reply, Sensors
 
 AGENT = 5
 PRIOR = [1.0, 2.0]
@@ -201,6 +201,7 @@ def checkpoint(state_dir):
     return int(flat[0]), flat[1:3]
 
 
+@pytest.mark.slow
 def test_the_units_command_runs_stops_and_resumes(tmp_path):
     swarm = f"svc{os.getpid()}"
     driver = Driver(swarm)

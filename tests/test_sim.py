@@ -5,10 +5,10 @@ import math
 import numpy as np
 
 from netsim.sim import Simulation
-from swarmloc import scenario as S
 from swarmloc import wire
-from swarmloc.messages import Beacon, LinkMsg, Links
+from swarmloc.experiment import scenario as S
 from swarmloc.node import RadioTx
+from swarmloc.wire.messages import Beacon, LinkMsg, Links
 
 
 def beacon(src, seq):

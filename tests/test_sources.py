@@ -1,7 +1,9 @@
-"""Sensor sources and outputs of `swarmloc agent --config` (agents/sources.py): a flight
+"""Sensor sources and outputs of `swarmloc agent --config` (agents/companion/sources.py): a flight
 controller in and out (tests/fake_fc.py over UDP), a missing one, a recording replayed, and
 garbage on a zenoh source key. Real agent processes, real Zenoh sessions on 127.0.0.1."""
 
+import json
+import math
 import os
 import signal
 import subprocess
@@ -14,22 +16,32 @@ import numpy as np
 import pytest
 import yaml
 import zenoh
-
-from agents.mavlink import mavlink
 from conftest import free_port
 from fake_fc import FakeFlightController
+from test_mavlink import udp_port
+
+from agents.companion.mavlink import mavlink
 from netsim.sim import Simulation
 from swarmloc import wire
-from swarmloc.messages import EstimateMsg, Reply
-from swarmloc.runner import InProcessRunner, make_nodes
-from swarmloc.scenario import load as load_scenario
-from test_mavlink import udp_port
+from swarmloc.experiment.runner import InProcessRunner, make_nodes
+from swarmloc.experiment.scenario import load as load_scenario
+from swarmloc.wire.messages import EstimateMsg, Reply
+
+SKEWED = """
+import runpy, sys, time
+_time = time.time
+time.time = lambda: _time() + {skew}
+sys.argv[0] = "agents"
+runpy.run_module("agents", run_name="__main__", alter_sys=True)
+"""
 
 
 class Agent:
     """`swarmloc agent --config` in a subprocess, its stderr collected line by line."""
 
-    def __init__(self, tmp_path, **fields):
+    def __init__(self, tmp_path, *, clock_skew: float = 0.0, **fields):
+        """`clock_skew` (s): this process's UNIX clock reads that much ahead of the host's, as a
+        companion whose clock is off does (time.time, which the daemon stamps and ticks with)."""
         self.swarm = "s" + uuid.uuid4().hex[:8]
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         data = {"version": 1, "id": 1, "swarm": self.swarm, "estimator": {"name": "il"},
@@ -39,8 +51,9 @@ class Agent:
         path.write_text(yaml.safe_dump(data))
         self.keys = wire.Keys(self.swarm)
         self.lines: list[str] = []
-        self.proc = subprocess.Popen([sys.executable, "-m", "agents", "agent", "--config", str(path), "-v"],
-                                     stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+        python = [sys.executable, "-c", SKEWED.format(skew=clock_skew)] if clock_skew else [sys.executable, "-m", "agents"]
+        self.proc = subprocess.Popen([*python, "agent", "--config", str(path), "-v"], stderr=subprocess.PIPE, text=True,
+                                     cwd=tmp_path)
         threading.Thread(target=self._read, daemon=True).start()
 
     def _read(self):
@@ -87,6 +100,7 @@ def wait_until(predicate, timeout: float):
         time.sleep(0.02)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("swarm, message", [(True, "odometry"), (False, "vision_position_estimate")])
 def test_flight_controller_round_trip(tmp_path, agents, swarm, message):
     port = udp_port()
@@ -132,6 +146,7 @@ def test_flight_controller_round_trip(tmp_path, agents, swarm, message):
         assert on_swarm == []
 
 
+@pytest.mark.slow
 def test_flight_controller_ticks_on_the_swarm_clock(tmp_path, agents):
     """Two agents, each with its own FC booted at a different time, number their ticks from
     the swarm clock's epoch (100 s ago): an estimate of tick k comes out just after
@@ -165,6 +180,7 @@ def test_flight_controller_ticks_on_the_swarm_clock(tmp_path, agents):
         # sample of the next tick completes it (20 ms at 50 Hz), then the step.
         late = np.array([at - (epoch + e.k * tick) for at, e in estimates_[1:]])
         assert 0.0 < np.median(late) < 0.1 and late.min() > -0.01 and late.max() < 0.3, (aid, late)
+@pytest.mark.slow
 def test_missing_flight_controller(tmp_path, agents):
     url = f"udpin:127.0.0.1:{udp_port()}"
     agent = agents(tmp_path, sensors=[{"kind": "mavlink", "url": url}], outputs={"mavlink": {}})
@@ -236,7 +252,7 @@ def test_garbage_on_a_zenoh_source_is_counted_and_dropped(tmp_path, agents):
     agent = agents(tmp_path, sensors=[{"kind": "zenoh", "key": key}])
     agent.wait_for("INFO agent 1 up")
     assert key in agent.wait_for("waiting for sensor frames on")
-    from swarmloc.messages import OdometryMsg, Sensors
+    from swarmloc.wire.messages import OdometryMsg, Sensors
 
     with agent.session() as session:
         pub = session.declare_publisher(key, **wire.publisher_options(zenoh))
@@ -276,7 +292,7 @@ def test_measurements_join_the_next_frame():
     fix and pseudoranges join the next whole frame; their motion data and tick are not used,
     and whatever does not fit is counted."""
     from agents.daemon import AgentConfig, AgentDaemon
-    from swarmloc.messages import GnssMsg, ImuMsg, OdometryMsg, RangeMsg, Sensors
+    from swarmloc.wire.messages import GnssMsg, ImuMsg, OdometryMsg, RangeMsg, Sensors
 
     node = recorder()
     daemon = AgentDaemon(node, AgentConfig(direct=True, measurement_keys=("drivers/uwb",), publish_swarm=False))
@@ -311,7 +327,7 @@ def test_a_measurements_source_feeds_a_running_agent(tmp_path, agents):
     agent = agents(tmp_path, sensors=[{"kind": "file", "path": "sensors.npz", "speed": 4.0},
                                       {"kind": "zenoh", "key": key, "role": "measurements"}])
     agent.wait_for("join the next sensor frame")
-    from swarmloc.messages import RangeMsg, Sensors
+    from swarmloc.wire.messages import RangeMsg, Sensors
 
     with agent.session() as session:
         pub = session.declare_publisher(key, **wire.publisher_options(zenoh))
@@ -333,7 +349,7 @@ def test_a_recording_on_the_swarm_clock_skips_what_is_overdue(tmp_path):
     """An agent that starts (or restarts) 3.2 s after the swarm clock's epoch plays the frame
     that is due now, not the 3 s it missed: the frames more than a tick overdue are skipped
     and counted, and the next comes on the common schedule."""
-    from agents.sources import FilePlayer
+    from agents.companion.sources import FilePlayer
 
     sc = load_scenario("wang2019")
     sc = sc.model_copy(update={"clock": sc.clock.model_copy(update={"duration": 10.0})})
@@ -344,3 +360,59 @@ def test_a_recording_on_the_swarm_clock_skips_what_is_overdue(tmp_path):
     assert [f.k for f in player.ready(now)] == [6]  # t = 3.0 s is due; 0 .. 2.5 s are past
     assert player.skipped == 6 and player.stats() == {"frames": 7, "of": 21, "skipped": 6}
     assert player.wait(now) == pytest.approx(0.3, abs=0.02)
+
+
+def test_a_cameras_sightings_join_a_vehicles_next_frame():
+    """Relative positions to other vehicles from a camera driver join the FC's vehicle frame:
+    the latest sighting of each vehicle (a backlog costs no backlog of fusions), the driver's
+    command, attitude and dt unused; a frame without vehicle readings takes none."""
+    from agents.daemon import AgentConfig, AgentDaemon
+    from swarmloc.wire.messages import OdometryMsg, RelPosMsg, Sensors, VehicleMsg
+
+    node = recorder()
+    daemon = AgentDaemon(node, AgentConfig(direct=True, measurement_keys=("drivers/camera",), publish_swarm=False))
+    sight = lambda n, *targets: wire.encode(Sensors(0, 0.0, None, [], vehicle=VehicleMsg(
+        0.0, np.array([9.0, 9.0]), np.array([9.0]), 9.0, [RelPosMsg(t, np.full(3, float(n)), 0.05) for t in targets])), 7, n)
+    for n, targets in enumerate([(2,), (5, 2), (2,)]):
+        daemon._handle("measurements", sight(n, *targets), None)
+    own = VehicleMsg(0.05, np.array([0.1, 0.0]), np.array([0.3]), 0.01, [RelPosMsg(4, np.zeros(3), 0.05)])
+    merged = daemon._merge(Sensors(8, 0.4, None, [], vehicle=own))
+    seen = {r.target: r.z[0] for r in merged.vehicle.seen}
+    assert seen == {4: 0.0, 2: 2.0, 5: 1.0}  # vehicle 2's latest is the third sighting
+    assert (merged.vehicle.dt, merged.vehicle.u.tolist(), merged.vehicle.attitude_std) == (0.05, [0.1, 0.0], 0.01)
+    assert daemon.merged == {"seen": 4, "seen-superseded": 2}
+    daemon._handle("measurements", sight(3, 2), None)
+    plain = daemon._merge(Sensors(9, 0.45, OdometryMsg(0.05, 1.0, 0.0, 0.1, 0.01), []))
+    assert plain.vehicle is None and daemon.merged["vehicle-ignored"] == 1
+
+
+@pytest.mark.slow
+def test_the_flight_controller_gets_the_estimate_between_ticks_and_fuses_it(tmp_path, agents):
+    """A 10 Hz swarm tick, a 30 Hz output, and a simulated PX4 whose pilot drives a circle: the
+    ODOMETRY it gets is the estimate moved on with its own samples between ticks (most stamps
+    are FC sample times between ticks, each later than the one before), its reset counter
+    unchanged (nothing jumps), and PX4's EKF2 would fuse it (never gated). Rate and jitter are
+    measured by benchmarks/fc_output.py, not asserted here."""
+    from fake_fc import SimulatedAutopilot
+
+    port = udp_port()
+    agent = agents(tmp_path, prior={"position": [0.0, 0.0], "std": 0.05},
+                   sensors=[{"kind": "mavlink", "url": f"udpin:127.0.0.1:{port}", "tick": 0.1}],
+                   outputs={"swarm": False, "mavlink": {"rate_hz": 30}, "log": "est.jsonl"})
+    agent.wait_for("INFO agent 1 up")
+    with SimulatedAutopilot(port, "rover", drive=(1.0, 0.1)) as sim:
+        time.sleep(4.0)
+    assert agent.stop() in (0, 143)
+    sent = [m for m in sim.received if m.get_type() == "ODOMETRY"]
+    stamps = np.array([m.time_usec for m in sent]) * 1e-6
+    ticks = np.array([json.loads(line)["t"] for line in (tmp_path / "est.jsonl").read_text().splitlines()])
+    assert len(sent) > 20 and np.all(np.diff(stamps) > 0)
+    between = [not np.any(np.abs(ticks - t) < 1e-6) for t in stamps]
+    assert np.mean(between) > 0.5, (stamps, ticks)
+    assert {m.reset_counter for m in sent} == {0}
+    counts = sim.ev.counts
+    assert "gated" not in counts and counts.get("fused", 0) > 0.8 * len(sent), counts
+    truth = np.array(sim.truth_log, float)
+    for m, t in zip(sent, stamps):  # dead reckoning on the FC's own velocity: centimetres in 4 s
+        east, north = np.interp(t, truth[:, 0], truth[:, 1]), np.interp(t, truth[:, 0], truth[:, 2])
+        assert math.hypot(m.y - east, m.x - north) < 0.3

@@ -12,7 +12,6 @@ import uuid
 
 import numpy as np
 import pytest
-
 from conftest import free_port
 from test_sources import agents  # noqa: F401  (the fixture that starts `swarmloc agent --config` processes)
 
@@ -20,7 +19,7 @@ from test_sources import agents  # noqa: F401  (the fixture that starts `swarmlo
 def swarmloc(*args, timeout=30):
     # Wide enough that rich wraps no cell: the rows are read back below.
     return subprocess.run([sys.executable, "-m", "agents", *args], capture_output=True, text=True, timeout=timeout,
-                          env={**os.environ, "COLUMNS": "200"})
+                          env={**os.environ, "COLUMNS": "300"})
 
 
 def one_line_error(p: subprocess.CompletedProcess) -> str:
@@ -41,8 +40,8 @@ def table(stdout: str) -> dict[str, dict[str, str]]:
 def recording(tmp_path_factory):
     """Sensor frames of agents 1..4 (wang2019, 60 s at 0.5 s a tick) from an in-process run."""
     from netsim.sim import Simulation
-    from swarmloc.runner import InProcessRunner, make_nodes
-    from swarmloc.scenario import load as load_scenario
+    from swarmloc.experiment.runner import InProcessRunner, make_nodes
+    from swarmloc.experiment.scenario import load as load_scenario
 
     sc = load_scenario("wang2019")
     sc = sc.model_copy(update={"clock": sc.clock.model_copy(update={"duration": 60.0})})
@@ -79,8 +78,14 @@ def test_status_shows_every_agent_without_netsim(swarm):
     name, started, endpoints = swarm
     # Agent 3's endpoint: a client of any one peer reaches the whole mesh.
     connect = ["--swarm", name, "--connect", endpoints[3]]
-    p = swarmloc("status", *connect)
-    assert p.returncode == 0, p.stderr
+    end = time.monotonic() + 10
+    while True:  # the clock offsets need a time.sync each way (one a second): a few seconds after joining
+        p = swarmloc("status", *connect)
+        assert p.returncode == 0, p.stderr
+        cells = [r.get("clock offset to peers", "-") for r in table(p.stdout).values()]
+        if (len(cells) == 3 and all(c.count(":") == 2 for c in cells)) or time.monotonic() > end:
+            break
+        time.sleep(0.5)
     assert f"swarm {name}: 3/3 agents answer on swarmloc/{name}/agent/*/stats" in p.stdout
     rows = table(p.stdout)
     assert set(rows) == {"1", "2", "3"}, p.stdout
@@ -91,6 +96,13 @@ def test_status_shows_every_agent_without_netsim(swarm):
         assert int(rows[aid]["tick"]) >= 0 and "sensors.npz: " in rows[aid]["sources"], rows[aid]
         assert rows[aid]["sources"].endswith("/121 frames"), rows[aid]
     assert rows["3"]["tick"] == "-1" and rows["3"]["sources"] == "-"
+    # Each agent's estimate of the others' clocks (time.sync every second): one machine, one clock.
+    for aid, row in rows.items():
+        offsets = dict(cell.split(": ") for cell in row["clock offset to peers"].split(", "))
+        assert set(offsets) == {"1", "2", "3"} - {aid}, row
+        for text in offsets.values():  # "+0.1±0.7 ms"
+            offset, half = map(float, text.removesuffix(" ms").split("±"))
+            assert abs(offset) - half < 10.0, row
 
     p = swarmloc("status", *connect, "--json")
     assert p.returncode == 0, p.stderr
@@ -152,3 +164,47 @@ def test_status_with_nobody_there_says_so():
         assert p.returncode == 1, (extra, p.stderr)
         assert one_line_error(p) == f"error: no swarm 'nobody' answers on {endpoint}: neither netsim nor any agent"
         assert p.stdout == ""
+
+
+@pytest.mark.slow
+def test_a_host_whose_clock_is_off_is_named(tmp_path, agents):  # noqa: F811
+    """Agent 2's host clock 50 ms ahead (time.time in its process): each agent estimates the
+    other's offset from time.sync to within half the round trip (NTP's bound: exact arithmetic,
+    no tolerance for the machine), counts it beyond the 10 ms bound, logs the warning that says
+    what to fix, and `status` shows the offset; agent 3 on the true clock sees none of it with
+    agent 1."""
+    name = "d" + uuid.uuid4().hex[:8]
+    ports = {aid: free_port() for aid in (1, 2, 3)}
+    started = {aid: agents(tmp_path, id=aid, swarm=name, prior={"position": [float(aid), 0.0]},
+                           clock_skew=0.05 if aid == 2 else 0.0, sensors=[{"kind": "zenoh"}],
+                           zenoh={"mode": "peer", "listen": [f"tcp/127.0.0.1:{ports[aid]}"],
+                                  "connect": [f"tcp/127.0.0.1:{ports[b]}" for b in ports if b < aid]})
+               for aid in (1, 2, 3)}
+    line = started[1].wait_for("peer 2's clock is", timeout=30)
+    print(f"\n{line.strip()}")
+    assert "beyond the 10 ms bound" in line and "docs/deploy.md#clock-offsets" in line, line
+    assert "peer 1's clock is -" in started[2].wait_for("peer 1's clock is", timeout=30)
+    connect = ["--swarm", name, "--connect", f"tcp/127.0.0.1:{ports[3]}"]
+    end = time.monotonic() + 15
+    pairs = ((1, 2, 50.0), (2, 1, -50.0), (3, 2, 50.0), (2, 3, -50.0), (1, 3, 0.0), (3, 1, 0.0))
+    while True:  # every agent has an estimate of both others, and one (rt < 80 ms) past the bound for agent 2's
+        p = swarmloc("status", *connect, "--json")
+        assert p.returncode == 0, p.stderr
+        answers = json.loads(p.stdout)
+        clocks = {(me, other): answers.get(str(me), {}).get("clock_offset_ms", {}).get(str(other)) for me, other, _ in pairs}
+        if all(c is not None and (c["exceeded"] > 0 or truth == 0.0) for (_, c), (*_, truth) in zip(clocks.items(), pairs)):
+            break
+        assert time.monotonic() < end, answers
+        time.sleep(0.5)
+    for me, other, truth in pairs:
+        c = clocks[me, other]
+        assert abs(c["offset_ms"] - truth) <= c["round_trip_ms"] / 2 + 1e-6, (me, other, c)
+        if truth == 0.0:  # within half the round trip of 0, so never past the bound by more than that
+            assert c["exceeded"] == 0, (me, other, c)
+    assert answers["1"]["clock_exceeded"] > 0 and answers["3"]["clock_exceeded"] == answers["3"]["clock_offset_ms"]["2"]["exceeded"]
+    out = swarmloc("status", *connect).stdout
+    print(out)
+    row = table(out)["1"]
+    offsets = dict(cell.split(": ") for cell in row["clock offset to peers"].split(", ")[:2])
+    assert abs(float(offsets["2"].split("±")[0]) - 50.0) < 25.0, row  # "+50.2±0.4 ms"
+    assert "beyond 10 ms" in row["clock offset to peers"], row

@@ -50,6 +50,21 @@ def test_table_has_every_point_run_and_estimator_and_is_deterministic(baseline, 
     assert (tmp_path / "again" / "summary.csv").read_bytes() == (out / "summary.csv").read_bytes()
 
 
+def test_tables_carry_the_bound_and_the_ratio_to_it(baseline):
+    _, out = baseline
+    rows = table(out / "results.csv")
+    for r in rows:
+        assert float(r["pcrb_m"]) > 0 and float(r["rmse_over_pcrb"]) == pytest.approx(float(r["rmse_m"]) / float(r["pcrb_m"]))
+    by_run = {}
+    for r in rows:  # the bound is the problem's, not the estimator's: the same for both in a run
+        by_run.setdefault((r["point"], r["run"]), set()).add(r["pcrb_m"])
+    assert all(len(v) == 1 for v in by_run.values())
+    s = table(out / "summary.csv")
+    assert {"pcrb_m_mean", "rmse_over_pcrb_mean", "rmse_over_pcrb_ci95"} <= set(s[0])
+    assert all(float(r["rmse_over_pcrb_n"]) == 3 for r in s)
+
+
+@pytest.mark.slow
 def test_resume_computes_only_the_missing_runs(baseline, tmp_path):
     _, base = baseline
     out = tmp_path / "resumed"
@@ -67,6 +82,7 @@ def test_resume_computes_only_the_missing_runs(baseline, tmp_path):
     assert more.executed == 2 and len(table(out / "results.csv")) == 16
 
 
+@pytest.mark.slow
 def test_other_spec_in_the_same_directory_is_an_error_unless_forced(baseline, tmp_path):
     out = tmp_path / "s"
     run_study(spec(), out, max_tasks=1, plots=False)
@@ -139,8 +155,10 @@ def test_cli_writes_the_tables_and_plots(tmp_path):
     assert "4 runs computed" in p.stdout and "ukf-ccl" in p.stdout
     assert len(table(tmp_path / "st" / "results.csv")) == 8
     plots = sorted(f.name for f in (tmp_path / "st" / "plots").iterdir())
+    # The spec's metrics, then the bound's columns, which every run has (netsim.study.BOUND_COLUMNS).
     assert plots == ["error_vs_time.png", "mean_error_m_vs_sensors.range.noise.png",
-                     "nees_mean_vs_sensors.range.noise.png"]
+                     "nees_mean_vs_sensors.range.noise.png", "pcrb_m_vs_sensors.range.noise.png",
+                     "rmse_over_pcrb_vs_sensors.range.noise.png"]
     assert load_spec(tmp_path / "spec.yaml").runs == 3
 
 
@@ -154,3 +172,66 @@ def test_cli_no_plots_and_one_line_errors(tmp_path):
     p = cli("bad.yaml", cwd=tmp_path)
     lines = p.stderr.strip().splitlines()
     assert p.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: overrides.clock.durration")
+
+
+def test_progress_lines_when_the_console_is_not_a_terminal(tmp_path):
+    import io
+
+    from rich.console import Console
+
+    out = io.StringIO()
+    result = run_study(spec(runs=2, sweep=[]), tmp_path / "st", console=Console(file=out, force_terminal=False))
+    lines = out.getvalue().splitlines()
+    assert result.complete and lines[0].startswith("study tiny: 0/2 runs done")
+    assert any(line.startswith("study tiny: 1/2 runs,") for line in lines)  # the first result: a line at once
+    assert lines[-1].startswith("study tiny: 2/2 runs,") and "ETA 0:00:00" in lines[-1]
+
+
+@pytest.mark.slow
+def test_sigint_to_the_pid_stops_the_study_with_the_resume_hint(tmp_path):
+    """`swarmloc study SPEC & kill -INT $!`: started as a non-interactive shell starts a background
+    job (SIGINT ignored), stderr a pipe; the signal to the pid stops it as Ctrl-C does."""
+    import os
+    import select
+    import signal
+    import time
+
+    (tmp_path / "spec.yaml").write_text(yaml.safe_dump({**SPEC, "sweep": [], "runs": 40, "workers": 1}))
+    p = subprocess.Popen([sys.executable, "-m", "agents", "study", "spec.yaml", "--out", "st", "--no-plots"],
+                         cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    seen, deadline = [], time.monotonic() + 120
+    try:
+        while not any("1/40 runs" in line for line in seen) and time.monotonic() < deadline:
+            if select.select([p.stderr], [], [], 1)[0]:
+                seen.append(p.stderr.readline())
+        assert any("1/40 runs" in line for line in seen), seen  # progress, though stderr is a pipe
+        os.kill(p.pid, signal.SIGINT)
+        _, err = p.communicate(timeout=60)
+    finally:
+        p.kill()
+    assert p.returncode == 130, err
+    assert "resume with: swarmloc study spec.yaml --out st" in err
+    done = len((tmp_path / "st" / "runs.jsonl").read_text().splitlines())
+    assert 1 <= done < 40
+
+
+def test_settle_agent_columns_medians_and_list_valued_sweeps(tmp_path):
+    """settle leaves the start out of every metric; agents adds a<id>_ columns; summary.csv has
+    medians; a swept value may be a list (an agent set), plots included. Neither option changes
+    the hash of a spec that does not use it (a finished study stays resumable)."""
+    assert plan(spec()).spec_hash == plan(spec(settle=0.0, agents=[])).spec_hash != plan(spec(settle=2.0)).spec_hash
+    assert plan(spec()).spec_hash != plan(spec(agents=[1])).spec_hash
+    sweep = [{"param": "sensors.gnss.agents", "values": [None, [1, 2]]}]
+    late = run_study(spec(sweep=sweep, runs=2, workers=1, settle=2.0, agents=[1], metrics=["mean_error_m", "a1_rmse_m"]),
+                     tmp_path / "late")
+    early = run_study(spec(sweep=sweep, runs=2, workers=1, agents=[1]), tmp_path / "early", plots=False)
+    assert (tmp_path / "late" / "plots" / "mean_error_m_vs_sensors.gnss.agents.png").exists()
+    rows = table(tmp_path / "late" / "results.csv")
+    assert {"a1_mean_error_m", "a1_rmse_m", "a1_nees_mean"} <= set(rows[0]) and "a2_mean_error_m" not in rows[0]
+    base = {(r["point"], r["run"], r["estimator"]): r for r in table(tmp_path / "early" / "results.csv")}
+    assert any(r["mean_error_m"] != base[(r["point"], r["run"], r["estimator"])]["mean_error_m"] for r in rows)
+    s = table(tmp_path / "late" / "summary.csv")[0]
+    vals = sorted(float(r["a1_rmse_m"]) for r in rows if r["point"] == s["point"] and r["estimator"] == s["estimator"])
+    assert float(s["a1_rmse_m_median"]) == pytest.approx(sum(vals) / 2)
+    assert late.complete and early.complete

@@ -5,15 +5,15 @@ import time
 
 import numpy as np
 import zenoh
+from conftest import free_port
 
 from agents.daemon import AgentConfig, AgentDaemon
-from conftest import free_port
 from netsim.sim import Simulation
-from swarmloc import scenario as S
 from swarmloc import wire
-from swarmloc.messages import Clock, Sensors
+from swarmloc.experiment import scenario as S
+from swarmloc.experiment.runner import InProcessRunner
 from swarmloc.node import Node, Timer, Timers
-from swarmloc.runner import InProcessRunner
+from swarmloc.wire.messages import Clock, Sensors
 
 
 class Alarm(Node):

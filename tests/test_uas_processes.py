@@ -5,10 +5,10 @@ import json
 
 import numpy as np
 import pytest
-
 from helpers import in_process
-from swarmloc import scenario as S
-from swarmloc.results import metrics
+
+from swarmloc.experiment import scenario as S
+from swarmloc.experiment.results import metrics
 
 pytestmark = pytest.mark.slow
 

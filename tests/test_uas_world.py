@@ -1,12 +1,12 @@
-"""UAS world truth and sensors (netsim/uas.py): orbits, visibility, pseudoranges, IMU, paths."""
+"""UAS world truth and sensors (netsim/world/uas_sensors.py): orbits, visibility, pseudoranges, IMU, paths."""
 
 import math
 
 import numpy as np
 import pytest
 
-from netsim import uas
-from swarmloc import ins
+from netsim.world import uas_sensors as uas
+from swarmloc.models import ins
 
 DAY = np.arange(0.0, 86400.0, 600.0)
 

@@ -1,15 +1,15 @@
-"""netsim/uas_world.py: the truth and sensor frames of a scenario's UAS (UasFleet)."""
+"""netsim/world/uas.py: the truth and sensor frames of a scenario's UAS (UasFleet)."""
 
 import math
 
 import numpy as np
 import pytest
 
-from netsim import uas_world
-from netsim.uas_world import UasFleet
-from swarmloc import ins
-from swarmloc.models import UasIns
-from swarmloc.scenario import parse
+from netsim.world import uas as uas_world
+from netsim.world.uas import UasFleet
+from swarmloc.experiment.scenario import parse
+from swarmloc.models import ins
+from swarmloc.models.motion import UasIns
 
 MOTIONS = ({"kind": "figure8", "width": 150.0, "climb": 5.0, "phase": 0.7, "heading": 0.3},
            {"kind": "orbit", "radius": 40.0, "speed": 8.0, "phase": 1.0, "clockwise": True},
@@ -190,6 +190,39 @@ def test_relative_positions_and_all_pairs_ranges():
     # Without all_pairs, UAS do not range.
     f = fleet(scenario(3, sensors={"relpos": {"enabled": True}}))
     assert all(fr[a]["ranges"] == [] for fr in run(f, 20) for a in fr)
+
+
+def test_ranges_once_per_pair_draw_what_both_ends_drew():
+    """both_ends: false keeps, of each pair, the lower id's range, the very draw it had with both
+    ends measuring (a full row is drawn either way)."""
+    both = {"range": {"all_pairs": True, "noise": 0.3}}
+    once = {"range": {"all_pairs": True, "noise": 0.3, "both_ends": False}}
+    fb, fo = fleet(scenario(4, sensors=both)), fleet(scenario(4, sensors=once))
+    fb.step(0)
+    fo.step(0)
+    for k in range(1, 21):
+        rb, ro = fb.step(k), fo.step(k)
+        for a in fo.ids:
+            assert [m.target for m in ro[a]["ranges"]] == ([b for b in fo.ids if b > a] if k % 10 == 0 else [])
+            kept = {m.target: m.range for m in rb[a]["ranges"] if m.target > a}
+            assert {m.target: m.range for m in ro[a]["ranges"]} == kept
+
+
+def test_relative_epoch_runs_ranges_and_relative_positions_on_their_own_clock():
+    sensors = {"gnss": {"enabled": True, "kind": "position", "noise": 0.02}, "relpos": {"enabled": True},
+               "range": {"all_pairs": True, "noise": 0.02}, "epoch": 1.0, "relative_epoch": 0.3}
+    f = fleet(scenario(3, sensors=sensors))
+    for k, fr in enumerate(run(f, 30)):
+        for a in f.ids:
+            assert (fr[a]["gnss"] is not None) == (k > 0 and k % 10 == 0)
+            assert bool(fr[a]["ranges"]) == bool(fr[a]["relpos"]) == (k > 0 and k % 3 == 0)
+    # The GNSS draws do not depend on when the relative measurements come.
+    g = fleet(scenario(3, sensors={**sensors, "relative_epoch": None}))
+    fixes = [fr[0]["gnss"].position for fr in run(g, 30) if fr[0]["gnss"] is not None]
+    f2 = fleet(scenario(3, sensors=sensors))
+    np.testing.assert_array_equal(fixes, [fr[0]["gnss"].position for fr in run(f2, 30) if fr[0]["gnss"] is not None])
+    with pytest.raises(Exception, match="relative_epoch"):
+        scenario(3, sensors={**sensors, "relative_epoch": 0.25})
 
 
 def _flat(frames, states):

@@ -6,16 +6,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import ccl_without, centralized
 
 from netsim.sim import Simulation
-from swarmloc import scenario as S
 from swarmloc import wire
-from swarmloc.estimators.ukf_dcl import UkfDclNode
-from swarmloc.messages import DclCommit, DclToken
-from swarmloc.results import compute_references, metrics
-from swarmloc.runner import InProcessRunner, make_nodes
-
-from helpers import ccl_without, centralized
+from swarmloc.estimators.ukf.dcl import UkfDclNode
+from swarmloc.experiment import scenario as S
+from swarmloc.experiment.results import compute_references, metrics
+from swarmloc.experiment.runner import InProcessRunner, make_nodes
+from swarmloc.wire.messages import DclCommit, DclToken
 
 TOL = 1e-9
 
@@ -67,6 +66,7 @@ def test_wang2019_equals_centralized_every_tick():
     assert sum(n.stats["measurements_used"] for n in nodes.values()) == sum(chains)
 
 
+@pytest.mark.slow
 def test_seven_agents_random_motion_limited_radio_equals_centralized():
     nodes, worst, chains = lockstep_compare(S.load("random7"), check_connected=True)
     assert max(chains) >= 2, "scenario must exercise several chains in one tick"
@@ -81,6 +81,7 @@ def run(sc):
     return metrics(record, ["il", "ukf-dcl", "ukf-ccl"]), nodes
 
 
+@pytest.mark.slow
 def test_cooperation_beats_dead_reckoning_for_every_platform():
     m, _ = run(S.load("wang2019"))
     il, dcl = m["estimators"]["il"]["agents"], m["estimators"]["ukf-dcl"]["agents"]
@@ -93,6 +94,7 @@ def dcl_error(p: float, seed: int) -> float:
     return run(sc)[0]["estimators"]["ukf-dcl"]["mean_error_m"]
 
 
+@pytest.mark.slow
 def test_error_falls_as_measurement_probability_rises():
     """Fig. 7 trend: averaged over seeds, the mean error decreases with p."""
     ps = [0.05, 0.1, 0.2, 0.5]
@@ -118,6 +120,7 @@ def partitioned_run(seed: int) -> tuple[dict, int]:
     return m, sum(n.stats["outsider_commits"] for n in nodes.values())
 
 
+@pytest.mark.slow
 def test_partitioned_swarm_stays_consistent():
     """Radio range shorter than the swarm (60 m): parts cooperate inside themselves, nodes out
     of a chain's reach take its commit later as outsiders, and over 6 seeds UKF-DCL is as
@@ -257,6 +260,7 @@ CUTS = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(CUTS))
 def test_cut_links_chains_route_around_them(name):
     """Links cut and restored at many ticks: chains meet freshly cut links (the radio NACKs
@@ -296,6 +300,7 @@ class DuplicatingRadio:
         return [rx for rx in self.sim.exchange(frames) for rx in (rx, rx)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["wang2019", "random7"])
 def test_duplicated_frames_are_recognised_and_change_nothing(name):
     """A radio that delivers every frame twice: the copies are counted and dropped, and the
@@ -358,6 +363,7 @@ def run_with_restart(sc, victim, killed_at, restarted_at):
     return record, nodes
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_restarted_agent_finds_itself_and_beats_dead_reckoning(seed):
     """The docs' example (3 agents; agents 1 and 2 circle mirror-symmetrically, so a range to

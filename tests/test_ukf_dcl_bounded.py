@@ -10,13 +10,13 @@ import math
 import numpy as np
 import pytest
 from scipy.stats import chi2
+from test_lossy import check_versions
 
 from netsim.sim import Simulation
 from swarmloc.estimators import make_nodes
-from swarmloc.results import compute_references, nees_series, position_errors
-from swarmloc.runner import InProcessRunner
-from swarmloc.scenario import parse
-from test_lossy import check_versions
+from swarmloc.experiment.results import compute_references, nees_series, position_errors
+from swarmloc.experiment.runner import InProcessRunner
+from swarmloc.experiment.scenario import parse
 
 N, BOUND, RUNS = 10, 3, 4
 
@@ -62,12 +62,14 @@ def monte_carlo():
     return {a: np.stack(v) for a, v in nees.items()}, {a: float(np.mean(v)) for a, v in err.items()}, used, visited
 
 
+@pytest.mark.slow
 def test_no_chain_visits_more_than_the_bound(monte_carlo):
     *_, used, visited = monte_carlo
     assert used > 50 * RUNS, used
     assert max(visited) == BOUND, visited  # the bound binds, and is never exceeded
 
 
+@pytest.mark.slow
 def test_bounded_chains_are_consistent_and_cooperate(monte_carlo):
     nees, err, *_ = monte_carlo
     n = nees["ukf-dcl"][..., :].size // nees["ukf-dcl"].shape[1]  # runs x agents per tick
@@ -77,6 +79,7 @@ def test_bounded_chains_are_consistent_and_cooperate(monte_carlo):
     assert err["ukf-ccl"] < err["ukf-dcl"] < err["il"], err
 
 
+@pytest.mark.slow
 def test_bounded_chains_are_deterministic_for_a_seed():
     a, b = run(3)[2], run(3)[2]
     ta, tb = a.trace("ukf-dcl"), b.trace("ukf-dcl")

@@ -1,17 +1,17 @@
 """UKF-DCL on the unicycle pose model (F != I) with range-bearing to agents and landmarks, step by
 step against UKF-CCL (FilterPy-test style), with and without the chi-square gate."""
 
-import dataclasses
 
 import numpy as np
 import pytest
+from msgspec.structs import replace
 
 from netsim.sim import Simulation
-from swarmloc import scenario as S
-from swarmloc.estimators.ukf_ccl import CentralizedUKF
-from swarmloc.messages import RangeBearingMsg
+from swarmloc.estimators.ukf.ccl import CentralizedUKF
+from swarmloc.experiment import scenario as S
+from swarmloc.experiment.runner import InProcessRunner, make_nodes
 from swarmloc.node import LANDMARK
-from swarmloc.runner import InProcessRunner, make_nodes
+from swarmloc.wire.messages import RangeBearingMsg
 
 TOL = 1e-9
 LANDMARKS = [{"id": 0, "position": [20.0, 30.0]}, {"id": 1, "position": [-30.0, 10.0]},
@@ -94,6 +94,7 @@ def lockstep_compare(sc, tamper=None):
     return nodes, ccl, worst, counts
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("gate", [None, 0.95])
 def test_pose_swarm_with_range_bearing_and_landmarks_equals_centralized_every_tick(gate):
     nodes, ccl, worst, counts = lockstep_compare(pose_swarm(**{"estimation.gate": gate}))
@@ -105,6 +106,7 @@ def test_pose_swarm_with_range_bearing_and_landmarks_equals_centralized_every_ti
     assert all(n.phi is not None and not np.allclose(n.phi, np.eye(3)) for n in nodes.values())  # F != I at work
 
 
+@pytest.mark.slow
 def test_landmarks_alone_equal_centralized():
     """Only landmark sightings: every chain has one platform; the estimates stay uncorrelated."""
     sc = pose_swarm(**{"sensors.range_bearing.robots": False, "sensors.range.probability": 0.0})
@@ -114,22 +116,24 @@ def test_landmarks_alone_equal_centralized():
     assert sum(n.stats["measurements_used"] for n in nodes.values()) == counts["landmarks"]
 
 
+@pytest.mark.slow
 def test_landmark_gain_reaches_the_platforms_correlated_with_the_measurer():
     """Only agent 2 sees landmarks. Once correlated with the others (through their range-bearing
     of it), its landmark chains carry gains for them too, applied as in the centralized filter."""
     def tamper(k, a, f):
-        return f if a == 2 else dataclasses.replace(f, landmarks=[])
+        return f if a == 2 else replace(f, landmarks=[])
 
     nodes, *_ = lockstep_compare(pose_swarm(), tamper)
     reach = [len(c.gains) for c in nodes[2].log if c.key[0] == 2 and c.key[1] == LANDMARK and c.gains]
     assert reach and max(reach) == len(nodes)
 
 
+@pytest.mark.slow
 def test_gate_rejects_an_outlier_identically():
     """One range-bearing 25 m long at tick 12: rejected by agent 2 and by UKF-CCL, and nothing else is."""
     def tamper(k, a, f):
         if k == 12 and a == 2:
-            return dataclasses.replace(f, rb=[dataclasses.replace(f.rb[0], range=f.rb[0].range + 25.0)] + f.rb[1:])
+            return replace(f, rb=[replace(f.rb[0], range=f.rb[0].range + 25.0)] + f.rb[1:])
         return f
 
     nodes, ccl, *_ = lockstep_compare(pose_swarm(**{"estimation.gate": 0.9999, "clock.duration": 8.0}), tamper)
@@ -138,12 +142,13 @@ def test_gate_rejects_an_outlier_identically():
     assert sum(n.stats["measurements_gated"] for n in nodes.values()) == 1
 
 
+@pytest.mark.slow
 def test_gate_opens_after_a_streak_in_both_filters():
     """Agent 1's sightings of landmark 0 read 15 m long from tick 10: rejected three times, then
     the gate stands open for that key, in the distributed and the centralized filter alike."""
     def tamper(k, a, f):
         if k >= 10 and a == 1:
-            return dataclasses.replace(f, landmarks=[dataclasses.replace(m, range=m.range + 15.0) if m.target == 0
+            return replace(f, landmarks=[replace(m, range=m.range + 15.0) if m.target == 0
                                                      else m for m in f.landmarks])
         return f
 
@@ -157,7 +162,7 @@ def test_speed_heading_swarm_drops_range_bearing_and_stays_exact():
     """planar-speed-heading has no heading to read a body-frame bearing with: both filters
     leave range-bearing frames out and run on ranges as before (no Phi: rows are real)."""
     def tamper(k, a, f):
-        return dataclasses.replace(f, rb=[RangeBearingMsg(b, 10.0, 0.1, 0.3, 0.03) for b in (1, 2) if b != a])
+        return replace(f, rb=[RangeBearingMsg(b, 10.0, 0.1, 0.3, 0.03) for b in (1, 2) if b != a])
 
     sc = S.load("wang2019").with_overrides(**{"clock.duration": 40.0})
     nodes, ccl, worst, counts = lockstep_compare(sc, tamper)
@@ -167,6 +172,7 @@ def test_speed_heading_swarm_drops_range_bearing_and_stays_exact():
     assert sum(n.stats["measurements_used"] for n in nodes.values()) == counts["ranges"]
 
 
+@pytest.mark.slow
 def test_partitioned_pose_swarm_keeps_equal_copies():
     """A 35 m radio splits the swarm: outsiders take commits late, parts replay each other's
     logs when they meet. With F != I that works on core rows: nodes at equal versions hold

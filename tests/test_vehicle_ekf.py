@@ -1,4 +1,4 @@
-"""The vehicle EKFs of swarmloc/estimators/vehicle_ekf.py: the joint (centralized EKF-CL) filter
+"""The vehicle EKFs of swarmloc/estimators/vehicles/filters.py: the joint (centralized EKF-CL) filter
 against the single-vehicle one and against the paper's per-vehicle equations 45-47, and a
 simulated hover of two quadrotors for consistency."""
 
@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from swarmloc.estimators.vehicle_ekf import Q_FLOOR, JointVehicleEkf, VehicleEkf, process_noise
-from swarmloc.vehicles import MODELS, relpos, relpos_jacobian
+from swarmloc.estimators.vehicles.filters import Q_FLOOR, JointVehicleEkf, VehicleEkf, process_noise
+from swarmloc.models.vehicles import MODELS, relpos, relpos_jacobian
 
 QUAD = MODELS["quadrotor"]
 GROUND = MODELS["ground-robot"]
@@ -233,6 +233,7 @@ def hover_run(seed=0, T=20.0, dt=0.02):
     return out
 
 
+@pytest.mark.slow
 def test_hover_consistency():
     r = hover_run()
     nees1, nees2 = np.mean(r["nees"][0]), np.mean(r["nees"][1])

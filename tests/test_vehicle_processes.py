@@ -7,9 +7,9 @@ import json
 
 import numpy as np
 import pytest
-
 from helpers import in_process
-from swarmloc import scenario as S
+
+from swarmloc.experiment import scenario as S
 
 pytestmark = pytest.mark.slow
 
@@ -80,7 +80,7 @@ def test_a_command_stream_lost_live_keeps_the_last_command(cli, tmp_path):
     assert m["commands"]["received"]["command-off"] >= 45
     truth = load_npz(out / "truth.npz")
     ref = sc.agent(2).motion
-    from swarmloc.vehicles import CircleReference
+    from swarmloc.models.vehicles import CircleReference
 
     want = CircleReference(tuple(ref.center), ref.radius, ref.period, ref.phase).derivatives(truth["t"][-1], 0)[0]
     assert np.linalg.norm(truth["state"][-1, 1, :3] - want) < 0.2

@@ -1,4 +1,4 @@
-"""netsim's vehicles (netsim/vehicle_world.py): truth under the command in force, body-frame
+"""netsim's vehicles (netsim/world/vehicles.py): truth under the command in force, body-frame
 relative positions along the graph within proximity, GPS on its schedule, commands and their
 faults, and the scenario schema's checks."""
 
@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from netsim.sim import Simulation
-from swarmloc import scenario
-from swarmloc.faults import CommandOff, CommandOn, Cut
-from swarmloc.scenario import ScenarioError
-from swarmloc.vehicles import MODELS, CircleReference, relpos
+from swarmloc.experiment import scenario
+from swarmloc.experiment.faults import CommandOff, CommandOn, Cut
+from swarmloc.experiment.scenario import ScenarioError
+from swarmloc.models.vehicles import MODELS, CircleReference, relpos
 
 
 def _short(name, seconds=4.0, **over):
@@ -49,6 +49,7 @@ def test_same_seed_same_world_bit_for_bit():
             assert [r.z.tobytes() for r in va.seen] == [r.z.tobytes() for r in vb.seen]
 
 
+@pytest.mark.slow
 def test_relative_positions_in_body_frame_along_graph_within_proximity():
     sc = _short("oliveros3", 40.0)
     sim = Simulation(sc)
@@ -165,7 +166,7 @@ def test_netsim_takes_an_agents_commands_and_counts_what_it_refuses():
 
     from netsim.server import NetsimServer, ServerConfig
     from swarmloc import wire
-    from swarmloc.messages import Command, Done
+    from swarmloc.wire.messages import Command, Done
 
     sc = _short("oliveros3", 1.0, **{"world.control": "agents"})
     server = NetsimServer(sc, ServerConfig())

@@ -1,4 +1,4 @@
-"""Vehicle models, relative-position measurement and tracking controllers (swarmloc/vehicles.py)."""
+"""Vehicle models, relative-position measurement and tracking controllers (swarmloc/models/vehicles.py)."""
 
 import math
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from swarmloc import vehicles as V
+from swarmloc.models import vehicles as V
 
 DT = 0.02
 QUAD = V.Quadrotor()
@@ -198,3 +198,20 @@ def test_reference_derivatives_are_consistent():
     assert np.all(x[7:] == 0.0)
     assert QUAD.yaw(x) == pytest.approx(ref.yaw_derivatives(0.0)[0])
     assert set(V.MODELS) == {"quadrotor", "ground-robot"}
+
+
+@pytest.mark.parametrize("name", ["quadrotor", "ground-robot"])
+def test_rot_jacobian_matches_finite_differences(name):
+    model = V.MODELS[name]
+    rng = np.random.default_rng(3)
+    x = model.initial_state([0.3, -0.2, 1.0], yaw=0.7)
+    o = model._orientation_slice
+    x[o] = x[o] + 0.05 * rng.standard_normal(o.stop - o.start)
+    a = np.array([0.4, -1.1, 0.3])
+    J = model.rot_jacobian(x, a)
+    num = np.zeros_like(J)
+    for i, j in enumerate(range(o.start, o.stop)):
+        d = np.zeros_like(x)
+        d[j] = 1e-6
+        num[:, i] = (model.rotation(x + d) @ a - model.rotation(x - d) @ a) / 2e-6
+    np.testing.assert_allclose(J, num, atol=1e-8)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from swarmloc import kalman
+from swarmloc.filters import kalman
 from swarmloc.node import Node, Send, odometry_of
 
 

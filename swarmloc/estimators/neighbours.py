@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from swarmloc.messages import Beacon
+from swarmloc.wire.messages import Beacon
 
 
 class NeighbourTable:

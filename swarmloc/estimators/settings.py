@@ -98,3 +98,20 @@ class DnbpSettings(BaseModel):
         if any(x < 1 for x in v) or any(a <= b for a, b in zip(v, v[1:])):
             raise ValueError("strictly decreasing integers >= 1")
         return v
+
+
+class CclSettings(BaseModel):
+    """EKF-CCL and UKF-CCL settings: on planar-pose robots, per-robot odometry bias states
+    (swarmloc.models.motion.PlanarPoseBias, docs/mrclam.md)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    odometry_bias: bool = Field(False, description="planar-pose: augment each robot's pose with a scale factor on its "
+                                "measured speed and a bias on its measured turn rate, both random walks; estimates "
+                                "report the pose alone")
+    speed_scale_walk: float = Field(1e-5, ge=0, description="random-walk intensity of the speed scale factor (1/s: "
+                                    "its variance grows by this much per second)")
+    turn_rate_bias_walk: float = Field(1e-6, ge=0, description="random-walk intensity of the turn-rate bias "
+                                       "((rad/s)^2 per s)")
+    speed_scale_std: float = Field(0.05, gt=0, description="prior std of the speed scale factor (0.05: 5 %)")
+    turn_rate_bias_std: float = Field(0.02, gt=0, description="prior std of the turn-rate bias (rad/s)")

@@ -1,0 +1,200 @@
+"""An agent host: several agents in one OS process, each exactly the agent a process of its
+own would be (its node, id, keys, Zenoh session and Zenoh keys, its checkpoint), on a thread
+of its own. On the wire nothing tells them apart from one agent per process.
+
+Why: an agent process is about 50 MB, nearly all of it the interpreter, numpy, scipy and
+Zenoh's runtime, which agents in one process share (a Zenoh session costs well under a
+megabyte: docs/benchmarks.md#agents-per-process). 256 agents in 256 processes would not fit
+the 6 GB a swarm of 256 may take on one host.
+
+Isolation: a node's exception is caught by its daemon (counted `node-error`, as in a process of
+its own); an error that ends an agent's loop ends that agent only, reported on stdout as
+`crashed ID`, and its hostmates go on. A whole-process death (a segfault, an out-of-memory
+kill) takes every agent of the host, as it would take a companion computer.
+
+Two front ends: `swarmloc run --agents-per-process K` (below) and, on a companion computer,
+`swarmloc agent --config A --config B` (agents/cli/deploy.py), whose agents are built from their
+configuration files and run until each has stopped (SIGTERM, or netsim's stop under radio netsim).
+
+The launcher (agents/launcher.py) drives a host over stdin, one command a line, because it
+carries out kill and restart faults itself: `kill ID` stops agent ID at once (its session
+closed: the swarm sees it gone, as after kill -9), `start ID` starts it again from its
+checkpoint. The host exits when stdin closes, on SIGTERM, or when every agent it runs has
+stopped with the swarm's clock and none waits for a restart.
+
+    python -m agents.host --swarm S --connect tcp/127.0.0.1:7447 --keys K \\
+        --agent 1=logs/agent-1.node.json --agent 2=logs/agent-2.node.json --state-dir logs
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from agents.daemon import AgentConfig, AgentDaemon, OpenError, load_node, open_daemon, run_daemon
+from swarmloc.node import NodeSpec
+from swarmloc.process import exit_on_sigterm
+from swarmloc.wire import auth
+
+log = logging.getLogger("swarmloc.host")
+
+
+@dataclass
+class Hosted:
+    """One agent of the host: how to build it, and its daemon and thread while it runs."""
+
+    aid: int
+    spec: Path | NodeSpec  # a file as `swarmloc run` writes it, or the node of an agent configuration
+    cfg: AgentConfig
+    daemon: AgentDaemon | None = None
+    thread: threading.Thread | None = None
+    killed: bool = False  # stopped by `kill`, waiting for `start`
+    ended: threading.Event = field(default_factory=threading.Event)  # its loop ended by itself
+
+
+class Host:
+    def __init__(self, agents: list[Hosted], report):
+        self.agents = {a.aid: a for a in agents}
+        self.report = report  # report(line, why): one line to the launcher per event, and the reason in words
+        self.changed = threading.Event()  # an agent ended or was killed: the main loop looks again
+        self._lock = threading.Lock()
+        self.stdin_closed = False  # the launcher is gone: so is the reason to wait for a restart
+
+    def start(self, aid: int) -> None:
+        a = self.agents[aid]
+        with self._lock:
+            if a.thread is not None and a.thread.is_alive():
+                return
+            a.killed = False
+            a.ended.clear()
+            # Afresh: a restarted agent is a new one that resumes its checkpoint.
+            node = load_node(a.spec, aid) if isinstance(a.spec, Path) else a.spec.build()
+            a.daemon = open_daemon(node, a.cfg)
+            a.thread = threading.Thread(target=self._run, args=(a, a.daemon), name=f"agent-{aid}", daemon=True)
+            a.thread.start()
+
+    def _run(self, a: Hosted, daemon: AgentDaemon) -> None:
+        try:
+            run_daemon(daemon)
+        except Exception as exc:
+            log.exception("agent %s: its loop failed; the host's other agents go on", a.aid)
+            if not a.killed:
+                self.report(f"crashed {a.aid}", f"agent {a.aid}: its loop failed ({type(exc).__name__}: {exc}); the "
+                            "other agents of this process go on")
+        finally:
+            a.ended.set()
+            self.changed.set()
+
+    def kill(self, aid: int) -> None:
+        a = self.agents[aid]
+        a.killed = True
+        if a.daemon is not None:
+            a.daemon.stop()
+        if a.thread is not None:
+            a.thread.join(5.0)
+        log.info("agent %s killed", aid)
+        self.changed.set()
+
+    def command(self, line: str) -> None:
+        """One of the launcher's lines: `kill ID` or `start ID`; anything else is logged and ignored."""
+        verb, _, arg = line.strip().partition(" ")
+        try:
+            aid = int(arg)
+            if aid not in self.agents or verb not in ("kill", "start"):
+                raise ValueError
+        except ValueError:
+            log.warning("host: not a command: %r", line.strip())
+            return
+        if verb == "kill":
+            self.kill(aid)
+        else:
+            try:
+                self.start(aid)
+            except (OpenError, ValueError) as exc:
+                self.agents[aid].ended.set()
+                self.report(f"crashed {aid}", str(exc))
+
+    def done(self) -> bool:
+        """Every agent has stopped with the swarm's clock, none waits for a restart."""
+        return all(a.ended.is_set() and not a.killed for a in self.agents.values())
+
+    def stop(self) -> None:
+        for a in self.agents.values():
+            if a.daemon is not None:
+                a.daemon.stop()
+        for a in self.agents.values():
+            if a.thread is not None:
+                a.thread.join(2.0)
+
+
+def _read_commands(host: Host, stream) -> None:
+    for line in stream:
+        host.command(line)
+    host.stdin_closed = True
+    host.changed.set()
+
+
+def serve_host(host: Host, held: tuple[int, ...] = (), commands=None) -> None:
+    """Start the host's agents (but the `held` ones) and wait until every one has stopped, or
+    `commands` (the launcher's stdin) closes; every agent stopped after. Call exit_on_sigterm
+    first: SIGTERM ends the wait here, in the main thread."""
+    for aid in host.agents:
+        if aid in held:
+            host.agents[aid].killed = True
+        else:
+            host.command(f"start {aid}")  # one agent that cannot start is reported; the others start
+    if commands is not None:
+        threading.Thread(target=_read_commands, args=(host, commands), name="commands", daemon=True).start()
+    try:
+        while not (host.done() or host.stdin_closed):
+            host.changed.wait(0.5)
+            host.changed.clear()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        host.stop()
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m agents.host", description="Several agents in one process.")
+    p.add_argument("--agent", action="append", required=True, metavar="ID=SPEC",
+                   help="an agent and its node spec (JSON, as `swarmloc run` writes it); repeatable")
+    p.add_argument("--hold", action="append", type=int, default=[], metavar="ID",
+                   help="an agent known but not started (killed by a fault): `start ID` on stdin starts it")
+    p.add_argument("--swarm", default="default")
+    p.add_argument("--connect", action="append", required=True, help="Zenoh endpoint (repeatable)")
+    p.add_argument("--state-dir", type=Path, help="checkpoints: agent-ID.state.npy in this directory")
+    p.add_argument("--keys", type=Path, help="the swarm's key file: frames sealed and opened with it")
+    p.add_argument("-v", "--verbose", action="store_true")
+    a = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO if a.verbose else logging.WARNING,
+                        format="%(asctime)s %(threadName)s %(levelname)s %(message)s")
+    exit_on_sigterm()
+    try:
+        keyring = None if a.keys is None else auth.Keyring.load(a.keys)
+        agents = []
+        for item in a.agent:
+            aid, sep, spec = item.partition("=")
+            if not sep or not aid.strip().isdigit():
+                raise ValueError(f"--agent {item}: expected ID=SPEC")
+            state = None if a.state_dir is None else a.state_dir / f"agent-{int(aid)}.state.npy"
+            agents.append(Hosted(int(aid), Path(spec), AgentConfig(swarm=a.swarm, connect=tuple(a.connect),
+                                                                   state_file=state, keyring=keyring)))
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+    def report(line: str, why: str) -> None:
+        log.error("%s", why)
+        print(line, flush=True)
+
+    serve_host(Host(agents, report), tuple(a.hold), sys.stdin)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

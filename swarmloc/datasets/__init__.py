@@ -1,0 +1,1 @@
+"""Loaders of recorded datasets (mrclam.py: UTIAS MR.CLAM)."""

@@ -1,0 +1,1 @@
+"""The EKF family of Goel, Kealy, Lohani 2016: each platform's own EKF (local.py), the centralized EKF (ccl.py), EKF-CI and naive fusion (ci.py), the fusion centre (centre.py), their planar-pose configurations (pose.py) and what they share (common.py)."""

@@ -1,0 +1,1 @@
+"""Running experiments: the scenario schema and the built-in scenarios (scenario.py, scenarios/), faults as data (faults.py), the in-process deterministic runner (runner.py), the run directory with its metrics (results.py) and plots (plots.py)."""

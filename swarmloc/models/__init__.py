@@ -1,0 +1,1 @@
+"""Motion and measurement models: what a platform's state is and how it moves (motion.py, the MOTION_MODELS registry), what its sensors measure (measurements.py), the strapdown INS of the UAS (ins.py), and the quadrotor and ground-robot dynamics with their controllers (vehicles.py)."""
