@@ -105,8 +105,6 @@ class AgentDaemon:
         self.consumed = 0  # netsim's delivery number of the last radio frame accepted
         self.clock_k = -1  # tick of the last clock frame
         self.rejected: Counter[str] = Counter()
-        self.door: Counter[str] = Counter()  # refused in Zenoh's callbacks, before the inbox
-        self._door_lock = threading.Lock()
         self.deliveries_lost = 0  # netsim's deliveries that never reached us (an inbox overflowed): stepped over
         self.hop_latency: list[float] = []  # s from the sender's publish to our loop picking the frame up
         self.handled = 0
@@ -136,6 +134,8 @@ class AgentDaemon:
         # Authentication at the I/O boundary: every frame out sealed, every frame in opened first.
         self.sealer = auth.Sealer(cfg.keyring, node.id) if cfg.keyring is not None else None
         self.opener = auth.Opener(cfg.keyring) if cfg.keyring is not None else None
+        # Refused in Zenoh's callbacks, before the inbox: oversize, no seal or a wrong one.
+        self.door = limits.Door(self.inbox, self.opener)
         self.model_t = 0.0  # modelled time of the last sensor frame
         self.speed, self.clock_t, self.clock_wall = 1.0, 0.0, time.monotonic()  # real time: the last clock frame
         self.ros2 = None  # swarmloc.wire.ros2.Ros2Publisher
@@ -157,33 +157,33 @@ class AgentDaemon:
         # stall the loop (Zenoh blocks up to seconds before it gives the link up): direct radio
         # frames are dropped on congestion instead, and UKF-DCL's timeouts cover the loss.
         radio = wire.publisher_options(zenoh, lossy=self.cfg.direct)
-        def put(item):
-            self.inbox.put(item, len(item[1]) if isinstance(item[1], bytes) else 0)
+        door = self.door
 
         def frame(kind):
-            return lambda s: put((kind, wire.bounded(s.payload), s.attachment))
+            return lambda s: door.admit(kind, s.payload, lambda d: (kind, d, s.attachment))
 
         tagged = self.opener is not None
 
         def delivery(s):
-            # Cheap refusals first: a delivery number we consumed already is a copy (a replay at
-            # any rate, issue 26 finding 4), dropped here before it costs a MAC or a place in the
-            # inbox that a genuine delivery needs. Only netsim's numbers ever raise `consumed`.
-            att = s.attachment.to_bytes() if s.attachment is not None else None
-            d = wire.decode_delivery(att[:-auth.TAG_BYTES] if tagged and att is not None else att)
-            if d is not None and d[0] <= self.consumed:
-                with self._door_lock:
-                    self.door["rx-out-of-sequence"] += 1
-                return
-            put(("rx", wire.bounded(s.payload), s.attachment))
+            def numbered():
+                # A delivery number we consumed already is a copy (a replay at any rate, issue
+                # 26 finding 4), dropped before it costs a MAC or a place in the inbox that a
+                # genuine delivery needs. Only netsim's numbers ever raise `consumed`.
+                if s.attachment is None:  # netsim numbers every delivery
+                    return "rx-unnumbered"
+                att = s.attachment.to_bytes()
+                d = wire.decode_delivery(att[:-auth.TAG_BYTES] if tagged else att)
+                return "rx-out-of-sequence" if d is not None and d[0] <= self.consumed else None
+
+            door.admit("rx", s.payload, lambda data: ("rx", data, s.attachment), numbered)
 
         sensor_keys = (self.keys.sensors(aid),) if self.cfg.sensor_keys is None else self.cfg.sensor_keys
         self._subs = [
             # Sensor frames carry no attachment: the slot holds their arrival, for the lag stats.
-            *(self.session.declare_subscriber(key, lambda s: put(("sensors", wire.bounded(s.payload), time.monotonic())))
+            *(self.session.declare_subscriber(
+                key, lambda s: door.admit("sensors", s.payload, lambda d: ("sensors", d, time.monotonic())))
               for key in dict.fromkeys(sensor_keys)),
-            *(self.session.declare_subscriber(key, lambda s: put(("measurements", wire.bounded(s.payload), None)))
-              for key in dict.fromkeys(self.cfg.measurement_keys)),
+            *(self.session.declare_subscriber(key, frame("measurements")) for key in dict.fromkeys(self.cfg.measurement_keys)),
             self.session.declare_subscriber(self.keys.radio_rx(aid), frame("rx") if self.cfg.direct else delivery),
             self.session.declare_subscriber(self.keys.clock, frame("clock")),
         ]
@@ -194,7 +194,7 @@ class AgentDaemon:
             # No netsim to NACK frames to an agent that is gone: the swarm's liveliness tokens
             # tell the node who is there (history: the agents up before us as well).
             self._subs.append(self.session.liveliness().declare_subscriber(
-                self.keys.alive("*"), lambda s: put(("alive", str(s.key_expr), s.kind == zenoh.SampleKind.PUT)),
+                self.keys.alive("*"), lambda s: self.inbox.put(("alive", str(s.key_expr), s.kind == zenoh.SampleKind.PUT)),
                 history=True))
         self._pub_tx = {} if self.cfg.direct else self.session.declare_publisher(self.keys.radio_tx(aid), **block)
         self._pub_est = self.session.declare_publisher(self.keys.estimate(aid), **radio)
@@ -202,7 +202,7 @@ class AgentDaemon:
         self._pub_cmd = self.session.declare_publisher(self.keys.command(aid), **block)
         self._radio_options = radio
         self._stats_key = self.keys.stats(aid)
-        self._stats_q = self.session.declare_queryable(self._stats_key, lambda q: put(("stats", q, None)))
+        self._stats_q = self.session.declare_queryable(self._stats_key, lambda q: self.inbox.put(("stats", q, None)))
         self.sources = sensor_sources.build(self.node, self.cfg.sources, self.cfg.mavlink_output, self.cfg.epoch,
                                             self.session, self.cfg.ros2)
         if self.cfg.ros2 is not None and self.cfg.ros2_publish and self.node.model.state_dim:
@@ -253,7 +253,7 @@ class AgentDaemon:
                 "ticks_skipped": self.ticks_skipped,
                 "sensor_lag_ms_median": lag[len(lag) // 2] * 1e3 if lag else None,
                 "sensor_lag_ms_max": lag[-1] * 1e3 if lag else None,
-                "sent": self.sent, "commands": self.commands, "consumed": self.consumed, "rejected": dict(self.rejected + self.door),
+                "sent": self.sent, "commands": self.commands, "consumed": self.consumed, "rejected": dict(self.rejected + self.door.counts()),
                 "deliveries_lost": self.deliveries_lost,
                 **({"peers": sorted(self.peers), "peer_delay_ms": {
                     a: {"min": min(d) * 1e3, "median": float(np.median(d)) * 1e3}
@@ -348,8 +348,8 @@ class AgentDaemon:
         docs/security.md: with a keyring the frame is authenticated before it is decoded)."""
         sender = None
         if self.opener is not None:
-            try:
-                data, sender = self.opener.open(data)
+            try:  # the door verified the tag: what is left is the sender's counter window
+                data, sender = self.opener.admit(data)
             except auth.AuthError as exc:
                 return self._reject(f"auth-{exc.reason}", f"{kind}: {exc}")
             if not self.rate.allow(sender, time.monotonic()):  # before the costly decode
@@ -387,9 +387,6 @@ class AgentDaemon:
             if self.recorder is not None:  # as it would cross Zenoh from a driver
                 self._record(self.keys.sensors(self.node.id), wire.encode(data, self.node.id, self.ticks + 1))
             return self._step(data, attachment, None)
-        if data is None:
-            self._reject("oversize", kind)
-            return None if kind == "clock" else []
         if self.recorder is not None and kind in RECORDED:
             aid = self.node.id
             key = {"sensors": self.keys.sensors(aid), "rx": self.keys.radio_rx(aid), "clock": self.keys.clock,

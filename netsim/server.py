@@ -125,6 +125,8 @@ class NetsimServer:
         ring = cfg.keyring
         self.sealer = auth.Sealer(ring, NETSIM_ID) if ring is not None else None
         self.opener = auth.Opener(ring) if ring is not None else None
+        # Refused in Zenoh's callbacks, before the queue: oversize, no seal or a wrong one.
+        self.door = limits.Door(self.q, self.opener)
         self.recorder = None  # swarmloc.experiment.recording.Recorder, made by open()
         self.view = None  # the live view's foxglove WebSocketServer
         self.ros2 = None  # swarmloc.wire.ros2.Ros2Publisher
@@ -141,11 +143,23 @@ class NetsimServer:
             raise SetupError(f"cannot open Zenoh router on {', '.join(self.cfg.listen)}: {exc}") from None
         k = self.keys
 
+        door = self.door
+
         def put(item):
-            self.q.put(item, len(item[2]) if isinstance(item[2], bytes) else 0)
+            self.q.put(item)
 
         def frame(kind, stamp=None):
-            return lambda s: put((kind, str(s.key_expr), wire.bounded(s.payload), stamp and (time.perf_counter(), s.attachment)))
+            def arrived(s):
+                key = str(s.key_expr)
+
+                def known():  # a key naming no agent of the run costs no MAC
+                    try:
+                        return None if wire.Keys.agent_of(key) in self.delivered else "unknown-agent"
+                    except ValueError:
+                        return "unknown-agent"
+
+                door.admit(kind, s.payload, lambda d: (kind, key, d, stamp and (time.perf_counter(), s.attachment)), known)
+            return arrived
 
         block = wire.publisher_options(zenoh)
         self._subs = [
@@ -209,8 +223,8 @@ class NetsimServer:
         `auth-<reason>`."""
         if self.opener is None:
             return payload, None
-        try:
-            return self.opener.open(payload, sender)
+        try:  # the door verified the tag: what is left is the sealer and its counter window
+            return self.opener.admit(payload, sender)
         except auth.AuthError as exc:
             return self._refuse(kind, key, f"auth-{exc.reason}", str(exc))
 
@@ -222,6 +236,13 @@ class NetsimServer:
             self.recorder.frame(self._pub_keys[id(pub)], data, self._rec_t())
 
     # ---------------------------------------------------------------- inputs
+
+    def _rejected(self) -> dict[str, dict[str, int]]:
+        """Refusals by kind and reason: the loop's and the door's."""
+        out = {kind: Counter(c) for kind, c in self.rejected.items()}
+        for (kind, reason), n in self.door.snapshot().items():
+            out.setdefault(kind, Counter())[reason] += n
+        return {kind: dict(c) for kind, c in out.items()}
 
     def _refuse(self, kind: str, key: str, reason: str, detail: str = "") -> None:
         counter = self.rejected[kind]
@@ -238,8 +259,6 @@ class NetsimServer:
             aid = None
         if aid not in self.delivered:
             return self._refuse(kind, key, "unknown-agent")
-        if payload is None:
-            return self._refuse(kind, key, "oversize")
         opened = self._open(kind, key, payload, aid)
         if opened is None:
             return None
@@ -692,7 +711,7 @@ class NetsimServer:
             "unresponsive_agents": sorted(self.unresponsive),
             "tick_timeouts": self.tick_timeouts,
             "agent_events": self.agent_events,
-            "rejected": {kind: dict(c) for kind, c in self.rejected.items()},
+            "rejected": self._rejected(),
             "inbox": self.q.stats(),
             **({"commands": self.sim.commands} if self.sim.commands else {}),
         }

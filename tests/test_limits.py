@@ -16,7 +16,7 @@ def test_the_inbox_drops_what_does_not_fit_and_counts_it():
     assert box.put("d", 10) and not box.put("e", 0)  # 3 frames: full
     assert box.put("stop", 0, force=True)  # the driver's own never is
     assert [box.get(0) for _ in range(4)] == ["a", "b", "d", "stop"]
-    assert box.stats() == {"dropped": 2, "dropped_bytes": 40, "peak_bytes": 90} and box.bytes == 0
+    assert box.stats() == {"dropped": 2, "dropped_bytes": 40, "dropped_share": 0, "peak_bytes": 90} and box.bytes == 0
     with pytest.raises(queue.Empty):
         box.get(timeout=0.01)
 
@@ -36,3 +36,37 @@ def test_a_sender_over_its_rate_is_refused_and_the_others_are_not():
     assert limit.allow(1, 0.011) and not limit.allow(1, 0.011)  # 0.011 s at 100/s: one more
     limit.allow(3, 0.02)  # a third sender: the least recently heard (2) is forgotten
     assert set(limit._buckets) == {1, 3}
+
+
+def test_one_authenticated_sender_holds_at_most_its_share():
+    """Issue 26, finding 5: a member flooding with its own key fills half the inbox at most, so
+    netsim's frames (sender 0) still find room."""
+    box = Inbox(max_frames=8, max_bytes=1000, share=0.5)
+    assert all(box.put(f"m{i}", 10, sender=2) for i in range(4))
+    assert not box.put("m4", 10, sender=2)  # over its share of frames
+    assert box.put("n0", 10, sender=0) and box.put("n1", 400, sender=0)
+    assert not box.put("n2", 100, sender=0)  # over its share of bytes (510 > 500)
+    assert box.stats()["dropped"] == 2 and box.stats()["dropped_share"] == 2
+    assert box.get(0) == "m0" and box.put("m5", 10, sender=2)  # a place freed is its again
+
+
+def test_the_door_refuses_what_is_oversized_or_not_sealed_before_the_inbox():
+    from swarmloc.wire import auth
+    from swarmloc.wire.limits import Door
+
+    ring = auth.Keyring.generate("s")
+    box = Inbox()
+    door = Door(box, auth.Opener(ring))
+    sealed = auth.Sealer(ring, 3).seal(b"x" * 100)
+    forged = b"y" * 60_000 + sealed[-auth.TRAILER.size:]  # a real trailer on other bytes
+    assert door.admit("rx", sealed, lambda d: d)
+    assert not door.admit("rx", forged, lambda d: d)
+    assert not door.admit("rx", b"z" * 100, lambda d: d)
+    assert not door.admit("rx", b"z" * 70_000, lambda d: d)
+    assert door.counts() == {"auth-bad-tag": 1, "auth-unauthenticated": 1, "oversize": 1}
+    assert box.frames == 1 and box.get(0) == sealed
+    # What the door passed, the loop admits once: its counter is then seen.
+    opener = door.opener
+    assert opener.admit(sealed) == (b"x" * 100, 3)
+    with pytest.raises(auth.AuthError, match="replayed"):
+        opener.admit(sealed)

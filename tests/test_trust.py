@@ -163,6 +163,32 @@ def test_a_replayed_delivery_at_full_rate_changes_nothing(cli, tmp_path):
     assert st["deliveries_lost"] == 0 and st["inbox"]["dropped"] == 0
 
 
+def test_a_flood_of_large_fake_frames_costs_a_mac_each_and_pushes_nothing_out(cli, tmp_path):
+    """Finding 5, outsider: 60 KB frames ending in a captured trailer of netsim's, at 10,000 a
+    second on agent 2's radio and sensor keys. Each is refused in Zenoh's callback (its tag is
+    wrong) before it takes a place in the inbox, so no genuine frame is dropped and the lockstep
+    run stays bit for bit the unattacked one; every refusal is counted by reason."""
+    sc, path = short(tmp_path, duration=200.0)
+    out = tmp_path / "run"
+    run = cli.start_run(str(path), out)
+    report = attack(cli, "trailer-flood", 20, sc.clock.steps - 20, 50000, 60000, 10000, timeout=600)
+    stdout, stderr = run.communicate(timeout=600)
+    assert run.returncode == 0, stderr
+    assert report["frames"] >= 5000  # the flood overlapped enough of the run to matter
+    m = json.loads((out / "metrics.json").read_text())
+    st = m["agent_stats"]["2"]
+    print(f"trailer flood: {report['frames']} frames at {report['rate']:.0f}/s; agent 2 refused {st['rejected']}, "
+          f"inbox {st['inbox']}, deliveries lost {st['deliveries_lost']}")
+    assert_unattacked(sc, out)
+    # Every frame that reached agent 2 is refused for its tag (Zenoh may still hold the last).
+    assert set(st["rejected"]) == {"auth-bad-tag"}
+    assert report["frames"] // 2 <= st["rejected"]["auth-bad-tag"] <= report["frames"]
+    assert st["deliveries_lost"] == 0 and st["inbox"]["dropped"] == 0
+    for aid in sc.agent_ids:
+        if aid != 2:
+            assert m["agent_stats"][str(aid)]["rejected"] == {}, aid
+
+
 def test_a_run_whose_agents_were_stopped_early_says_so_and_fails(cli, tmp_path):
     """Finding 9, one member's key: one sealed `stop` on the clock, sealed as netsim, made every
     agent exit at once while the run exited 0 with most of its ticks missing. With one swarm key

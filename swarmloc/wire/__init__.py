@@ -231,14 +231,17 @@ class Keys:
         raise ValueError(f"no agent id in {key!r}")
 
 
-# Zenoh refuses to reassemble a message larger than this for a client or peer session, so a
-# hostile publisher cannot make an agent buffer megabytes; frames between MAX_WIRE_BYTES and
-# this still reach the subscriber callbacks, which count them as oversize without copying them.
+# Every session's ingress filter (Zenoh's low_pass_filter) drops a message larger than this
+# before any subscriber sees it, and a router does not forward it: a hostile publisher cannot
+# make an agent take megabytes (issue 26, finding 6: Zenoh 1.10 delivered 8 MB messages in
+# spite of transport.link.rx.max_message_size). Frames between MAX_WIRE_BYTES and this still
+# reach the callbacks, which count them as oversize without copying them.
 ZENOH_MAX_MESSAGE_BYTES = 4 * MAX_WIRE_BYTES
 
 
 def zenoh_config(mode: str, listen: list[str] = (), connect: list[str] = (), gossip: bool | None = None) -> str:
-    """JSON5 for zenoh.Config.from_json5: no multicast scouting, bounded message size.
+    """JSON5 for zenoh.Config.from_json5: no multicast scouting, bounded message size (an
+    ingress filter on every session, below).
 
     Scouting is off so a test's sessions never find a stranger's on the same machine. Gossip
     (a peer learns the others from those it connects to, and dials them) is on for peers
@@ -251,6 +254,8 @@ def zenoh_config(mode: str, listen: list[str] = (), connect: list[str] = (), gos
         "scouting": {"multicast": {"enabled": False},
                      "gossip": {"enabled": mode == "peer" if gossip is None else gossip}},
         "transport": {"link": {"rx": {"max_message_size": ZENOH_MAX_MESSAGE_BYTES}}},
+        "low_pass_filter": [{"flows": ["ingress"], "messages": ["put", "query", "reply"], "key_exprs": ["**"],
+                             "size_limit": ZENOH_MAX_MESSAGE_BYTES}],
     }
     return json.dumps(cfg)
 

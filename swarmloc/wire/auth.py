@@ -196,19 +196,33 @@ class Opener:
     def __post_init__(self):
         self._swarm = self.keyring.swarm.encode()
 
+    def verify(self, data: bytes) -> int:
+        """The sealer of a frame whose tag is right, AuthError otherwise: the MAC alone, no
+        counter, no state, so a driver's Zenoh callback threads can call it at once, before a
+        frame takes a place in the inbox (docs/security.md#limits)."""
+        if len(data) < TRAILER.size or data[-2:] != MAGIC:
+            raise AuthError("unauthenticated", "no trailer")
+        trailer = data[-TRAILER.size:]
+        sealer, _, kid, tag, _ = TRAILER.unpack(trailer)
+        key = self.keyring.keys.get(kid)
+        if key is None:
+            raise AuthError("unknown-key", f"key {kid}")
+        if not hmac.compare_digest(tag, _tag(key, self._swarm, data[:-TRAILER.size], trailer[:13])):
+            raise AuthError("bad-tag", f"sender {sealer}")
+        return sealer
+
     def open(self, data: bytes, sender: int | None = None) -> tuple[bytes, int]:
         """(frame, sender) of an authentic frame not seen before; AuthError otherwise. With
         `sender`, a frame sealed by anyone else is refused before its counter counts as seen:
         a captured copy on another sender's key must not make the original a replay."""
-        if len(data) < TRAILER.size or data[-2:] != MAGIC:
-            raise AuthError("unauthenticated", "no trailer")
+        self.verify(data)
+        return self.admit(data, sender)
+
+    def admit(self, data: bytes, sender: int | None = None) -> tuple[bytes, int]:
+        """`open` for a frame `verify` passed already (in a Zenoh callback): the sender and the
+        counter against its window, from the one loop that owns the windows."""
         frame, trailer = data[:-TRAILER.size], data[-TRAILER.size:]
-        sealer, counter, kid, tag, _ = TRAILER.unpack(trailer)
-        key = self.keyring.keys.get(kid)
-        if key is None:
-            raise AuthError("unknown-key", f"key {kid}")
-        if not hmac.compare_digest(tag, _tag(key, self._swarm, frame, trailer[:13])):
-            raise AuthError("bad-tag", f"sender {sealer}")
+        sealer, counter, _, _, _ = TRAILER.unpack(trailer)
         if sender is not None and sealer != sender:
             raise AuthError("wrong-sender", f"sealed by {sealer}, expected {sender}")
         sender = sealer
