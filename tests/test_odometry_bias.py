@@ -134,6 +134,41 @@ def test_the_setting_augments_the_centralized_filters_of_a_replay(tmp_path_facto
         REGISTRY["ekf-ci"].settings({"odometry_bias": True})
 
 
+def test_a_scenario_names_a_references_settings_and_the_run_uses_them(tmp_path_factory):
+    """reference_params reaches compute_references: ekf-ccl with odometry_bias gives other
+    estimates than without, ukf-ccl unnamed keeps its defaults; a bad name or setting is
+    refused naming it. `replay_scenario(odometry_bias=True)` (the CLI's --odometry-bias) sets
+    it for both centralized filters and says so in its label."""
+    import mrclam_synth
+
+    from netsim.sim import Simulation
+    from swarmloc.experiment import scenario
+    from swarmloc.experiment.results import RunRecord, compute_references
+    from swarmloc.experiment.runner import InProcessRunner
+
+    path = mrclam_synth.write(tmp_path_factory.mktemp("synth") / "MRCLAM_Synthetic", seed=4)
+    plain = scenario.replay_scenario(path, estimator="ukf-dcl", duration=20.0, calibration="none")
+    biased = plain.with_overrides(reference_params={"ekf-ccl": {"odometry_bias": True}})
+    record = InProcessRunner(Simulation(plain), {}).run(RunRecord.for_scenario(plain))
+    traces = {}
+    for sc in (plain, biased):
+        record.est.pop("ekf-ccl", None), record.est.pop("ukf-ccl", None)
+        compute_references(sc, record, ["ekf-ccl", "ukf-ccl"])
+        traces[sc is biased] = {n: record.trace(n).mean.copy() for n in ("ekf-ccl", "ukf-ccl")}
+    assert not np.array_equal(traces[True]["ekf-ccl"], traces[False]["ekf-ccl"])
+    assert np.array_equal(traces[True]["ukf-ccl"], traces[False]["ukf-ccl"])
+    with pytest.raises(scenario.ScenarioError, match="reference_params.*kalman"):
+        plain.with_overrides(reference_params={"kalman": {}})
+    with pytest.raises(scenario.ScenarioError, match="reference_params.*odometry_bias"):
+        plain.with_overrides(reference_params={"ekf": {"odometry_bias": True}})
+    sc = scenario.replay_scenario(path, estimator="ukf-dcl", duration=20.0, calibration="scored", odometry_bias=True)
+    assert sc.reference_params == {"ekf-ccl": {"odometry_bias": True}, "ukf-ccl": {"odometry_bias": True}}
+    assert scenario.replay_label(sc).endswith("; ekf-ccl and ukf-ccl with odometry bias states")
+    import yaml
+
+    assert scenario.parse(yaml.safe_load(sc.to_yaml())).reference_params == sc.reference_params
+
+
 FULL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mrclam" / "MRCLAM_Dataset6"
 
 

@@ -143,12 +143,16 @@ def test_replay_cli_errors_are_one_line(cli, tmp_path):
 def test_replay_over_agent_processes_equals_in_process(cli, synth, tmp_path, estimator):
     out = tmp_path / "run"
     p = cli.run("replay", str(synth), "--estimator", estimator, "--duration", "10", "--out", str(out), "--port",
-                str(cli.port), "--swarm", cli.swarm, "--no-plots", check=True, timeout=300)
+                str(cli.port), "--swarm", cli.swarm, "--no-plots", "--odometry-bias", check=True, timeout=300)
     assert "Per agent" in p.stdout and "held out" in p.stdout  # the pose table (titles wrap), the noise label
-    m = json.loads((out / "metrics.json").read_text())["estimators"][estimator]
+    assert "ekf-ccl and ukf-ccl with odometry bias states" in p.stdout
+    metrics = json.loads((out / "metrics.json").read_text())["estimators"]
+    m = metrics[estimator]
     assert m["heading_rmse_rad"] is not None and m["rmse_m"] < 0.5
+    assert metrics["ekf-ccl"]["rmse_m"] is not None and metrics["ukf-ccl"]["rmse_m"] is not None
     sc = scenario.load(out / "scenario.yaml")
     assert sc.world.source == "mrclam" and sc.estimator.name == estimator
+    assert sc.reference_params == {"ekf-ccl": {"odometry_bias": True}, "ukf-ccl": {"odometry_bias": True}}
     record = InProcessRunner(Simulation(sc), make_nodes(estimator, sc)).run()
     ref = record.trace(estimator)
     with np.load(out / "estimates" / f"{estimator}.npz") as f:

@@ -134,6 +134,8 @@ def replay(
     odometry_horizon: Optional[float] = typer.Option(None, "--odometry-horizon", callback=in_range(0, above=True),
                                                      help="the uncalibrated white noise of before `calibrate`, its "
                                                      "odometry fitted over this many seconds (docs/replay.md)"),
+    odometry_bias: bool = typer.Option(False, "--odometry-bias", help="the ekf-ccl and ukf-ccl references with "
+                                       "per-robot odometry bias states (docs/mrclam.md)"),
     realtime: bool = typer.Option(False, "--realtime", help="tick at the recording's pace (times --speed) "
                                   "instead of as fast as the agents go"),
     speed: Optional[float] = typer.Option(None, "--speed", callback=in_range(0, above=True),
@@ -170,7 +172,7 @@ def replay(
                                       observations=observations, gate=gate or None,
                                       mode="realtime" if realtime else "lockstep", speed=speed or 1.0, seed=seed or 0,
                                       noise=model, calibration="scored" if fit_on_scored else "held-out",
-                                      odometry_horizon=odometry_horizon)
+                                      odometry_horizon=odometry_horizon, odometry_bias=odometry_bias)
     except sc.ScenarioError as exc:
         raise Failure(str(exc.renamed(f"replay of {path}", REPLAY_OPTIONS)), 2) from None
     label = sc.replay_label(scenario)

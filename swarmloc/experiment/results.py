@@ -213,7 +213,7 @@ def compute_references(scenario, record: RunRecord, which=None) -> None:
     from swarmloc.estimators import REGISTRY
 
     for name in scenario.reference_names if which is None else which:
-        ref = REGISTRY[name].make_reference(scenario, record.ids)
+        ref = REGISTRY[name].make_reference(scenario, record.ids, scenario.reference_settings(name))
         for frames in record.sensors:
             ref.step(frames)
             for a in record.ids:

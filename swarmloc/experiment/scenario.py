@@ -567,6 +567,10 @@ class Scenario(_Strict):
     estimator: EstimatorChoice = Field(default_factory=EstimatorChoice)
     references: list[str] | None = Field(None, description="estimators computed offline from the recorded sensor stream "
                                          "after the run; null: every reference that fits the swarm's models")
+    reference_params: dict[str, dict] = Field(default_factory=dict, description="settings of offline references, by "
+                                              "name, each validated by its estimator as estimator.params is (e.g. "
+                                              "{ekf-ccl: {odometry_bias: true}}); a reference not named runs with its "
+                                              "defaults")
     bound: bool = Field(True, description="compute the run's posterior Cramér-Rao bound after the run, beside the "
                         "references (docs/estimators.md); false: skip it")
     faults: list[Fault] = Field(default_factory=list, description="fault timeline: each fault with `at` (docs/faults.md)")
@@ -625,6 +629,26 @@ class Scenario(_Strict):
             if bad:
                 raise ValueError(f"unknown references {bad}; known: {sorted(REGISTRY.references())}")
         return v
+
+    @field_validator("reference_params")
+    @classmethod
+    def _known_reference_params(cls, v):
+        from swarmloc.estimators import REGISTRY
+
+        for name, params in v.items():
+            if name not in REGISTRY.references():
+                raise ValueError(f"unknown reference {name!r}; known: {sorted(REGISTRY.references())}")
+            try:
+                REGISTRY[name].settings(params)
+            except ValueError as exc:
+                raise ValueError(f"{name}: {exc}") from None
+        return v
+
+    def reference_settings(self, name: str):
+        """The settings the offline reference `name` runs with (reference_params, else its defaults)."""
+        from swarmloc.estimators import REGISTRY
+
+        return REGISTRY[name].settings(self.reference_params.get(name, {}))
 
     @field_validator("version")
     @classmethod
@@ -942,7 +966,8 @@ def replay_scenario(path, *, estimator: str = "ukf-dcl", dt: float = 0.1, durati
                     offset: float | None = None, robots: list[int] | None = None, landmarks: bool = True,
                     observations: bool = True, gate: float | None = 0.999, mode: str = "lockstep",
                     speed: float = 1.0, seed: int = 0, noise=None, calibration: str = "held-out",
-                    horizon: float | None = None, odometry_horizon: float | None = None) -> Scenario:
+                    horizon: float | None = None, odometry_horizon: float | None = None,
+                    odometry_bias: bool = False) -> Scenario:
     """The scenario `swarmloc replay` runs: the recording at `path` replayed at ticks of dt, the
     agents running `estimator` and the offline references beside it, its noise model
     (swarmloc.datasets.calibrate) fitted on a part of the recording it does not score (calibration
@@ -951,7 +976,10 @@ def replay_scenario(path, *, estimator: str = "ukf-dcl", dt: float = 0.1, durati
 
     calibration "none", a swarmloc.datasets.mrclam.NoiseFit as `noise`, or an `odometry_horizon`: the
     model before calibration, white noise pooled over the robots and fitted on the whole
-    recording (mrclam.fit_noise, odometry tick by tick or over odometry_horizon s)."""
+    recording (mrclam.fit_noise, odometry tick by tick or over odometry_horizon s).
+
+    `odometry_bias`: the references ekf-ccl and ukf-ccl with their per-robot odometry bias
+    states at their default walks (CclSettings, docs/mrclam.md)."""
     from swarmloc.datasets import calibrate, mrclam
     from swarmloc.estimators import REGISTRY
 
@@ -999,6 +1027,8 @@ def replay_scenario(path, *, estimator: str = "ukf-dcl", dt: float = 0.1, durati
         "estimator": {"name": estimator},
         "references": [r for r in REPLAY_REFERENCES if r != estimator and "planar-pose" in REGISTRY[r].models],
     }
+    if odometry_bias:
+        data["reference_params"] = {r: {"odometry_bias": True} for r in ("ekf-ccl", "ukf-ccl") if r in data["references"]}
     return parse(data, f"replay of {p}")
 
 
@@ -1010,10 +1040,12 @@ def replay_label(scenario: Scenario) -> str:
     if w.source != "mrclam":
         return ""
     end = w.offset + scenario.clock.duration
+    biased = [r for r, params in scenario.reference_params.items() if params.get("odometry_bias")]
+    extra = f"; {' and '.join(biased)} with odometry bias states" if biased else ""
     if w.noise is None:
         _, sep, what = scenario.description.partition("; noise")
-        return ("noise" + what) if sep else calibrate.label(None, Path(w.path).name, w.offset, end)
-    return calibrate.label(w.noise, Path(w.path).name, w.offset, end)
+        return (("noise" + what) if sep else calibrate.label(None, Path(w.path).name, w.offset, end)) + extra
+    return calibrate.label(w.noise, Path(w.path).name, w.offset, end) + extra
 
 
 def parse(data, source: str = "<scenario>", base: Path | None = None) -> Scenario:
