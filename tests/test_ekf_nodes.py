@@ -472,3 +472,29 @@ def test_registry_builds_the_nodes_from_a_scenario():
             assert node.criterion == "det"
     with pytest.raises(ValueError, match="criterion"):
         REGISTRY["ekf-ci"].settings({"criterion": "volume"})
+
+
+def test_a_beacon_whose_position_is_a_lie_past_the_bound_is_refused():
+    """Issue 26, finding 7 for EKF-CI on UAS: a beacon position 1 km off (a member's lie) is
+    refused as implausible and counted, the estimate untouched; one a metre off is fused."""
+    ticks = 10
+    flights = pair(0.0, ticks, [5])
+
+    def fresh():
+        n = CiNode(0, np.zeros(16), np.eye(16), imu=SPEC)
+        n.step(frame(0, align=AlignMsg(flights[0].x[0], prior_cov())))
+        for k in range(1, ticks + 1):
+            z = flights[1].x[k][:3] - flights[0].x[k][:3]
+            n.step(frame(k, imu=flights[0].imu(k), relpos=[RelPosMsg(1, z, 0.05)] if k == ticks else []))
+        return n
+
+    x1 = flights[1].x[ticks][:3]
+    n = fresh()
+    x, P = n.x.copy(), n.P.copy()
+    n.receive(1, Beacon(ticks, x1 + np.array([1000.0, 0.0, 0.0]), np.eye(3) * 0.04, {}))
+    assert n.drops["implausible-innovation"] == 1 and n.stats["fused"] == 0
+    np.testing.assert_array_equal(n.x, x)
+    np.testing.assert_array_equal(n.P, P)
+    m = fresh()
+    m.receive(1, Beacon(ticks, x1 + np.array([1.0, 0.0, 0.0]), np.eye(3) * 0.04, {}))
+    assert m.stats["fused"] == 1 and not m.drops

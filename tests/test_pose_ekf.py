@@ -390,3 +390,26 @@ def test_ekf_ccl_of_a_swarm_of_uas_and_robots_runs_the_two_apart():
     ref.step({1: Sensors(0, 0.0, None, [], align=AlignMsg(x16, np.eye(16))), 2: frame(0)})
     np.testing.assert_array_equal(ref.estimate(1).mean, x16)
     np.testing.assert_array_equal(ref.estimate(2).mean, sc.prior(2)[0])
+
+
+def test_a_beacon_whose_pose_is_a_lie_past_the_bound_is_refused_even_with_the_gate_open():
+    """Issue 26, finding 7 for EKF-CI: a neighbour's beacon pose 1 km off (a member's lie) puts
+    the innovation past plausibility's bound; it is refused and counted, the estimate is as it
+    was, and so it stays after the gate's streak would have opened it. A pose lie within the
+    bound moves the estimate by at most the bound's standard deviations."""
+    from swarmloc.filters import plausibility
+
+    x1, x2 = np.zeros(3), np.array([2.0, 0.0, 0.0])
+    P, Pj = np.diag([0.3, 0.3, 0.1]) ** 2, np.eye(3) * 0.01
+    node = PoseCiNode(1, x1, P, gate=0.999, gate_open_after=2)
+    for k in range(1, 6):
+        node.step(frame(k, robots=[rb(2, 2.0, 0.0)]))
+        before = (node.x.copy(), node.P.copy())
+        node.receive(2, beacon(k, x2 + [1000.0, 0.0, 0.0], Pj))
+        np.testing.assert_array_equal(node.x, before[0])
+        np.testing.assert_array_equal(node.P, before[1])
+    assert node.drops["implausible-innovation"] == 5 and node.stats["fused"] == 0
+    honest = PoseCiNode(1, x1, P)
+    honest.step(frame(1, robots=[rb(2, 2.0, 0.0)]))
+    honest.receive(2, beacon(1, x2 + [1.0, 0.0, 0.0], Pj))  # inside the bound: fused
+    assert honest.stats["fused"] == 1 and plausibility.positive_definite(honest.P)

@@ -52,7 +52,7 @@ from swarmloc.estimators.ekf.common import (
     release_held,
 )
 from swarmloc.estimators.ekf.local import DIM, LAYOUT, EkfNode
-from swarmloc.filters import fusion
+from swarmloc.filters import fusion, plausibility
 from swarmloc.models import ins
 from swarmloc.models.measurements import RelativePosition, StateLayout
 from swarmloc.node import NodeSpec, Send
@@ -134,8 +134,15 @@ class CiNode(EkfNode):
         # i = a (this node), j = b (the neighbour, of which the beacon gives the position only).
         rel = RelativePosition(LAYOUT, std=std, other=POSITION_ONLY)
         p_i, P_i = rel.implied_position(p_j, P_j, z, known="b")
+        dz = p_i - self.filter.state.position
+        # One member's lie (issue 26, finding 7): an implied position past the plausibility
+        # bound against our own, or a fusion that leaves no covariance, touches nothing.
+        if (why := plausibility.innovation(dz, self.filter.position_cov() + P_i)) is not None:
+            return self.drop(why, f"{src}'s beacon implies a position {np.linalg.norm(dz):.3g} m off")
         try:
-            dx, P, omega = self.fuse(p_i - self.filter.state.position, P_i)
+            dx, P, omega = self.fuse(dz, P_i)
+            if (why := plausibility.covariance(P)) is not None:
+                return self.drop(why, f"fusing {src}'s beacon")
             self.filter.correct(dx, P)
         except (np.linalg.LinAlgError, ValueError) as exc:
             return self.drop("numerical", f"fusing {src}'s beacon: {exc}")

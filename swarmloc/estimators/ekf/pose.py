@@ -75,7 +75,7 @@ from swarmloc.estimators.ekf.common import (
     guarded,
     release_held,
 )
-from swarmloc.filters import fusion, kalman
+from swarmloc.filters import fusion, kalman, plausibility
 from swarmloc.models.measurements import RangeBearing, StateLayout
 from swarmloc.models.motion import MOTION_MODELS, Odometry, PlanarPoseBias
 from swarmloc.node import LANDMARK, RANGE_BEARING, Estimate, Node, NodeSpec, Send, keyed_measurements, odometry_of
@@ -330,9 +330,18 @@ class PoseCiNode(PoseEkfNode):
         dep = Hj @ P_j @ Hj.T
         dep = 0.5 * (dep + dep.T)
         R = kalman.block_diag(Rs)
-        if not self.filter.gate.admit((self.id, RANGE_BEARING, j), fusion.nis(nu, Hi @ P @ Hi.T + dep + R), len(nu)):
+        S = Hi @ P @ Hi.T + dep + R
+        # Before the gate, which stands open after a streak: a neighbour's pose (one member's
+        # lie, issue 26 finding 7) that puts the innovation past the plausibility bound is
+        # refused whatever the gate's state.
+        if (why := plausibility.innovation(nu, S)) is not None:
+            raise RejectedInput(why, f"NIS {fusion.nis(nu, S):.3g} from {j}'s beacon")
+        if not self.filter.gate.admit((self.id, RANGE_BEARING, j), fusion.nis(nu, S), len(nu)):
             return None
-        self.filter.x, self.filter.P, omega = split_ci_update(x, P, Hi @ x + nu, dep, R, Hi, self.criterion)
+        x_new, P_new, omega = split_ci_update(x, P, Hi @ x + nu, dep, R, Hi, self.criterion)
+        if (why := plausibility.covariance(P_new)) is not None:
+            raise RejectedInput(why, f"fusing {j}'s beacon")
+        self.filter.x, self.filter.P = x_new, P_new
         return omega
 
 
