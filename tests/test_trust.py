@@ -180,9 +180,11 @@ def test_a_flood_of_large_fake_frames_costs_a_mac_each_and_pushes_nothing_out(cl
     print(f"trailer flood: {report['frames']} frames at {report['rate']:.0f}/s; agent 2 refused {st['rejected']}, "
           f"inbox {st['inbox']}, deliveries lost {st['deliveries_lost']}")
     assert_unattacked(sc, out)
-    # Every frame that reached agent 2 is refused for its tag (Zenoh may still hold the last).
+    # Every frame that reached agent 2 is refused for its tag. How many reach it is the
+    # flooder's DROP publisher's and the machine's affair (24,105 of 50,000 on a loaded CI run,
+    # 49,909 on a quiet one): at least a tenth, for the flood to have mattered.
     assert set(st["rejected"]) == {"auth-bad-tag"}
-    assert report["frames"] // 2 <= st["rejected"]["auth-bad-tag"] <= report["frames"]
+    assert report["frames"] // 10 <= st["rejected"]["auth-bad-tag"] <= report["frames"]
     assert st["deliveries_lost"] == 0 and st["inbox"]["dropped"] == 0
     for aid in sc.agent_ids:
         if aid != 2:
