@@ -4,13 +4,17 @@ Golden values are rmw_zenoh's design document's own examples (docs/design.md of 
 "Topic and Service name mapping to Zenoh key expressions", "Graph Cache" and "Publishers"), and
 CDR bytes written out field by field from the CDR rules (little-endian encapsulation 00 01 00
 00, each primitive aligned to its size from the end of that header, strings as a uint32 length
-counting the NUL, the bytes and the NUL), never our own output. The round trips go through
+counting the NUL, the bytes and the NUL), never our own output. The Jazzy type hashes of the two
+published types are docs/ros2.md's literals, the ones ROS 2's generator writes, recomputed by a
+REP-2016 implementation of the test's own (REP2016). The round trips go through
 mcap-ros2-support's CDR code, which shares nothing with rosbags'."""
 
+import hashlib
 import json
 import math
 import struct
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -30,6 +34,86 @@ def test_type_hash_is_the_documented_one():
     for t in (ros2.POSE, ros2.ODOMETRY):
         h = ros2.type_hash(t)
         assert h.startswith("RIHS01_") and len(h) == 7 + 64 and h != STRING_HASH
+
+
+# Jazzy's hashes of the two types swarmloc publishes, as docs/ros2.md lists them. The same
+# literals are in code that ROS 2's own generator wrote (rosidl_generator_c's *__struct.h, e.g.
+# nav_msgs/msg/detail/odometry__struct.h of micro-ROS/micro_ros_arduino:
+# nav_msgs__msg__Odometry__TYPE_HASH = {1, {0x3c, 0xc9, 0x7d, ...}}), and REP2016 below computes
+# them again from the types' .msg definitions without rosbags (whose hash swarmloc uses).
+POSE_HASH = "RIHS01_26432f9803e43727d3c8f668d1fdb3c630f548af631e2f4e31382371bfea3b6e"
+ODOMETRY_HASH = "RIHS01_3cc97dc7fb7502f8714462c526d369e35b603cfc34d946e3f2eda2766dfec6e0"
+
+
+class REP2016:
+    """REP-2016's type hash (RIHS01), written out from the REP and rosidl_generator_type_description:
+    SHA-256 of the JSON of {"type_description", "referenced_type_descriptions"} (the referenced
+    types sorted by name, default values left out), separators ", " and ": ", keys in this order."""
+
+    NESTED, INT32, UINT32, DOUBLE, STRING = 1, 6, 7, 11, 17  # type_interfaces/msg/FieldType
+    ARRAY = 48  # added to the element's type id for a fixed-size array (capacity: its size)
+    # The fields of each type, from its .msg file in ros2/common_interfaces and rcl_interfaces (Jazzy).
+    MSGS = {
+        "builtin_interfaces/msg/Time": [("sec", INT32), ("nanosec", UINT32)],
+        "std_msgs/msg/Header": [("stamp", "builtin_interfaces/msg/Time"), ("frame_id", STRING)],
+        "std_msgs/msg/String": [("data", STRING)],
+        "geometry_msgs/msg/Point": [("x", DOUBLE), ("y", DOUBLE), ("z", DOUBLE)],
+        "geometry_msgs/msg/Vector3": [("x", DOUBLE), ("y", DOUBLE), ("z", DOUBLE)],
+        "geometry_msgs/msg/Quaternion": [("x", DOUBLE), ("y", DOUBLE), ("z", DOUBLE), ("w", DOUBLE)],
+        "geometry_msgs/msg/Pose": [("position", "geometry_msgs/msg/Point"),
+                                   ("orientation", "geometry_msgs/msg/Quaternion")],
+        "geometry_msgs/msg/PoseWithCovariance": [("pose", "geometry_msgs/msg/Pose"), ("covariance", (DOUBLE, 36))],
+        "geometry_msgs/msg/PoseWithCovarianceStamped": [("header", "std_msgs/msg/Header"),
+                                                        ("pose", "geometry_msgs/msg/PoseWithCovariance")],
+        "geometry_msgs/msg/Twist": [("linear", "geometry_msgs/msg/Vector3"), ("angular", "geometry_msgs/msg/Vector3")],
+        "geometry_msgs/msg/TwistWithCovariance": [("twist", "geometry_msgs/msg/Twist"),
+                                                  ("covariance", (DOUBLE, 36))],
+        "nav_msgs/msg/Odometry": [("header", "std_msgs/msg/Header"), ("child_frame_id", STRING),
+                                  ("pose", "geometry_msgs/msg/PoseWithCovariance"),
+                                  ("twist", "geometry_msgs/msg/TwistWithCovariance")],
+    }
+
+    @classmethod
+    def field(cls, name, t) -> dict:
+        type_id, capacity, nested = t, 0, ""
+        if isinstance(t, str):
+            type_id, nested = cls.NESTED, t
+        elif isinstance(t, tuple):
+            type_id, capacity = t[0] + cls.ARRAY, t[1]
+        return {"name": name, "type": {"type_id": type_id, "capacity": capacity, "string_capacity": 0,
+                                       "nested_type_name": nested}}
+
+    @classmethod
+    def description(cls, name: str) -> dict:
+        return {"type_name": name, "fields": [cls.field(*f) for f in cls.MSGS[name]]}
+
+    @classmethod
+    def referenced(cls, name: str, seen: set) -> set:
+        for _, t in cls.MSGS[name]:
+            if isinstance(t, str) and t not in seen:
+                seen.add(t)
+                cls.referenced(t, seen)
+        return seen
+
+    @classmethod
+    def hash(cls, name: str) -> str:
+        d = {"type_description": cls.description(name),
+             "referenced_type_descriptions": [cls.description(r) for r in sorted(cls.referenced(name, set()))]}
+        return "RIHS01_" + hashlib.sha256(json.dumps(d, separators=(", ", ": ")).encode()).hexdigest()
+
+
+def test_jazzy_type_hashes_of_the_published_types():
+    # The independent implementation first gives the design document's own String hash...
+    assert REP2016.hash(STRING) == STRING_HASH
+    # ...then the documented hashes of the published types, which ours must be.
+    assert REP2016.hash(ros2.POSE) == POSE_HASH and REP2016.hash(ros2.ODOMETRY) == ODOMETRY_HASH
+    assert ros2.type_hash(ros2.POSE) == POSE_HASH and ros2.type_hash(ros2.ODOMETRY) == ODOMETRY_HASH
+    assert ros2.topic_key(0, "/swarmloc/agent1/pose", ros2.POSE) == \
+        f"0/swarmloc/agent1/pose/geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/{POSE_HASH}"
+    assert ros2.topic_key(0, "/swarmloc/agent1/odom", ros2.ODOMETRY) == \
+        f"0/swarmloc/agent1/odom/nav_msgs::msg::dds_::Odometry_/{ODOMETRY_HASH}"
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "ros2.md").read_text()
+    assert f"PoseWithCovarianceStamped_/{POSE_HASH}" in doc and f"Odometry_/{ODOMETRY_HASH}" in doc
 
 
 def test_topic_keys_of_the_design_document():

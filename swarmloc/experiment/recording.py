@@ -126,6 +126,12 @@ class Recorder:
     # ---------------------------------------------------------------- channels
 
     def _wire_channel(self, key: str):
+        # The private Context._create_channel, because foxglove-sdk 0.30 has no public way to make
+        # a channel with a message encoding and no schema: foxglove.Channel takes one without a
+        # schema only for JSON (it raises TypeError for "msgpack"), and with any Schema object the
+        # file gets a schema record (schema_id != 0), not the schemaless wire channel of
+        # docs/run-format.md. Hence the `<0.31` cap on foxglove-sdk in pyproject.toml: move to a
+        # public call once one exists, before raising the cap.
         ch = self._raw.get(key)
         if ch is None:
             ch = self._raw[key] = self.context._create_channel(key, message_encoding=WIRE_ENCODING, schema=None,
