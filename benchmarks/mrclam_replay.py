@@ -30,7 +30,6 @@ from swarmloc.process import pin_blas
 pin_blas()  # before numpy loads
 
 import argparse  # noqa: E402
-import math  # noqa: E402
 import multiprocessing  # noqa: E402
 import shlex  # noqa: E402
 import sys  # noqa: E402
@@ -58,7 +57,7 @@ def log(msg: str) -> None:
 
 
 def scenario(args, config: str, estimator: str, span, model):
-    from swarmloc.experiment.scenario import replay_scenario
+    from swarmloc.experiment.replay import replay_scenario
 
     lo, hi = span
     kw = {"noise": model} if model is not None else {"calibration": "none"}  # model: a NoiseModel or a NoiseFit

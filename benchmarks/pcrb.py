@@ -38,6 +38,7 @@ from msgspec.structs import replace  # noqa: E402
 from netsim.sim import Simulation  # noqa: E402
 from swarmloc.estimators import REGISTRY  # noqa: E402
 from swarmloc.experiment import scenario as S  # noqa: E402
+from swarmloc.experiment.replay import replay_scenario  # noqa: E402
 from swarmloc.experiment.results import RunRecord, compute_bound, compute_references, metrics, position_errors  # noqa: E402
 from swarmloc.experiment.runner import InProcessRunner, make_nodes  # noqa: E402
 
@@ -130,7 +131,7 @@ def main(argv=None) -> int:
     label = "".join(f", {k}={v}" for k, v in overrides.items()) + (", bound of each platform alone" if a.alone else "")
     jobs = [(n + label, S.load(n).with_overrides(**overrides) if overrides else S.load(n)) for n in names]
     if a.replay:
-        jobs.append((f"replay {a.replay.name}", S.replay_scenario(a.replay)))
+        jobs.append((f"replay {a.replay.name}", replay_scenario(a.replay)))
     lines = ["| scenario | seeds | estimator | RMSE (m) | PCRB (m) | RMSE / PCRB | run (s) | bound (s) |",
              "|---|---|---|---|---|---|---|---|"]
     curves = []

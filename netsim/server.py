@@ -4,7 +4,7 @@ Lockstep (default): publish tick k and every agent's sensor frame, then run radi
 A round ends when the swarm is quiet: for every live agent its last `done` says it handled
 tick k, consumed every frame netsim delivered to it and sent nothing netsim has not yet
 received. Then the frames collected in the round go through the radio together
-(Simulation.exchange) and are delivered; the tick ends when a round sends nothing. Nothing
+(Simulation.exchange_batch) and are delivered; the tick ends when a round sends nothing. Nothing
 else is trusted about ordering across keys, so the run is deterministic for a seed.
 
 Real time: the clock runs at wall speed times `clock.speed`; frames enter the radio when

@@ -12,6 +12,7 @@ import scipy.stats
 from netsim.sim import Simulation
 from swarmloc.experiment import scenario as S
 from swarmloc.experiment.bounds import InformationRecursion, pcrb
+from swarmloc.experiment.replay import replay_scenario
 from swarmloc.experiment.results import compute_references, position_errors
 from swarmloc.experiment.rundir import write_run
 from swarmloc.experiment.runner import InProcessRunner, make_nodes
@@ -267,7 +268,7 @@ def test_a_replay_with_a_vicon_gap_leaves_those_ticks_and_their_measurements_out
     import mrclam_synth
 
     path = mrclam_synth.write(tmp_path / "MRCLAM_Synthetic", seed=4, duration=30.0)
-    sc = S.replay_scenario(path, estimator="il", dt=0.1, gate=None)
+    sc = replay_scenario(path, estimator="il", dt=0.1, gate=None)
     record = run(sc, "il", ["ekf-ccl"])
     b = record.bound
     truth_missing = np.isnan(record.truth_array()[:, :, 0])
@@ -286,7 +287,7 @@ def test_a_replay_with_a_vicon_gap_leaves_those_ticks_and_their_measurements_out
 def test_metrics_summary_and_plots_carry_the_bound(tmp_path):
     from rich.console import Console
 
-    from agents import launcher
+    from agents import summary
 
     sc = S.load("wang2019").with_overrides(**{"clock.duration": 20.0})
     record = run(sc, "il", ["ukf-ccl"])
@@ -302,7 +303,7 @@ def test_metrics_summary_and_plots_carry_the_bound(tmp_path):
         assert all(v["pcrb_m"] > 0 and v["rmse_over_pcrb"] > 0 for v in e["agents"].values())
     assert m["estimators"]["il"]["pcrb_m"] == m["estimators"]["ukf-ccl"]["pcrb_m"]  # one problem, one bound
     buf = io.StringIO()
-    launcher.print_summary(tmp_path, [], ui=Console(file=buf, width=250))
+    summary.print_summary(tmp_path, [], ui=Console(file=buf, width=250))
     assert "RMSE / PCRB" in buf.getvalue() and "PCRB" in buf.getvalue()
     assert (tmp_path / "plots" / "position_error.png").is_file()
 
@@ -348,7 +349,7 @@ def test_a_run_whose_bound_fails_keeps_every_number_plot_and_summary_line(tmp_pa
     # Any failure inside the bound, not only the linear algebra's: the run is written as without it.
     from rich.console import Console
 
-    from agents import launcher
+    from agents import summary
     from swarmloc.experiment import bounds
 
     sc = S.load("wang2019").with_overrides(**{"clock.duration": 10.0})
@@ -369,7 +370,7 @@ def test_a_run_whose_bound_fails_keeps_every_number_plot_and_summary_line(tmp_pa
     assert (tmp_path / "failed" / "plots" / "position_error.png").is_file()
     for name, warned in (("plain", False), ("failed", True)):
         buf = io.StringIO()
-        launcher.print_summary(tmp_path / name, [], ui=Console(file=buf, width=250))
+        summary.print_summary(tmp_path / name, [], ui=Console(file=buf, width=250))
         out = buf.getvalue()
         assert "RMSE / PCRB" not in out and "il" in out and "ukf-ccl" in out
         assert ("no PCRB for this run (RuntimeError: a bug in the bound)" in out) == warned

@@ -11,7 +11,7 @@ import pytest
 from netsim.sim import Simulation
 from netsim.world.recorded import ReplayWorld
 from swarmloc.datasets import calibrate, mrclam
-from swarmloc.experiment import scenario
+from swarmloc.experiment import replay, scenario
 from swarmloc.experiment.results import RunRecord, compute_references, metrics
 from swarmloc.experiment.runner import InProcessRunner
 
@@ -137,7 +137,7 @@ def test_batch_means_find_the_long_run_variance_of_a_correlated_error():
 def test_the_replay_plays_the_recording_through_the_noise_model(biased):
     rec = mrclam.load(biased)
     model = calibrate.calibrate(rec, [(0.0, 60.0)], dt=DT)
-    sc = scenario.replay_scenario(biased, estimator="il", noise=model)
+    sc = replay.replay_scenario(biased, estimator="il", noise=model)
     assert sc.world.noise == model and sc.world.offset == pytest.approx(60.0)
     world = ReplayWorld(sc)
     frames = [world.step() for _ in range(sc.clock.steps + 1)]
@@ -160,7 +160,7 @@ def test_a_camera_kind_the_calibration_never_saw_keeps_its_readings(coloured):
     """A robot that saw no other robot in the calibration windows has no `robots` model: its
     robot observations in the scored span go out with its landmark camera's stds (the same
     camera), none dropped (a zero std would be)."""
-    sc = scenario.replay_scenario(coloured, estimator="il")
+    sc = replay.replay_scenario(coloured, estimator="il")
     unseen = [r for r, n in sc.world.noise.robots.items() if n.robots is None and n.landmarks is not None]
     assert unseen  # this recording's first half: robots 2 and 3 see no robot
     world = ReplayWorld(sc)
@@ -176,35 +176,35 @@ def test_a_camera_kind_the_calibration_never_saw_keeps_its_readings(coloured):
 def test_the_default_replay_scores_what_its_noise_was_not_fitted_to(biased):
     rec = mrclam.load(biased)
     T = rec.duration
-    sc = scenario.replay_scenario(biased, estimator="il")
+    sc = replay.replay_scenario(biased, estimator="il")
     assert sc.world.offset == pytest.approx(T / 2) and sc.world.noise.windows == [(0.0, pytest.approx(T / 2))]
-    label = scenario.replay_label(sc)
+    label = replay.replay_label(sc)
     assert "held out" in label and "fitted on the scored data" not in label and label in sc.description
     # A span given: calibrated on what it leaves.
-    sc = scenario.replay_scenario(biased, estimator="il", offset=20.0, duration=30.0)
-    assert sc.world.noise.windows == [(0.0, 20.0), (50.0, pytest.approx(T))] and "held out" in scenario.replay_label(sc)
+    sc = replay.replay_scenario(biased, estimator="il", offset=20.0, duration=30.0)
+    assert sc.world.noise.windows == [(0.0, 20.0), (50.0, pytest.approx(T))] and "held out" in replay.replay_label(sc)
     # Fitting on the scored data is asked for, and said.
-    sc = scenario.replay_scenario(biased, estimator="il", calibration="scored")
+    sc = replay.replay_scenario(biased, estimator="il", calibration="scored")
     assert sc.world.noise.windows == [(0.0, pytest.approx(T))]
-    assert scenario.replay_label(sc).startswith("noise fitted on the scored data")
+    assert replay.replay_label(sc).startswith("noise fitted on the scored data")
     # A noise model of part of the recording scores the rest; one of all of it is labelled.
     first = calibrate.calibrate(rec, [(0.0, 80.0)], dt=DT)
-    sc = scenario.replay_scenario(biased, estimator="il", noise=first)
-    assert sc.world.offset == pytest.approx(80.0) and "held out" in scenario.replay_label(sc)
-    sc = scenario.replay_scenario(biased, estimator="il", noise=first, offset=0.0, duration=60.0)
-    assert scenario.replay_label(sc).startswith("noise fitted on the scored data")
+    sc = replay.replay_scenario(biased, estimator="il", noise=first)
+    assert sc.world.offset == pytest.approx(80.0) and "held out" in replay.replay_label(sc)
+    sc = replay.replay_scenario(biased, estimator="il", noise=first, offset=0.0, duration=60.0)
+    assert replay.replay_label(sc).startswith("noise fitted on the scored data")
     # The white fit of before calibration is fitted on the scored data, and says so.
-    sc = scenario.replay_scenario(biased, estimator="il", calibration="none")
-    assert sc.world.noise is None and scenario.replay_label(sc).startswith("noise fitted on the scored data")
+    sc = replay.replay_scenario(biased, estimator="il", calibration="none")
+    assert sc.world.noise is None and replay.replay_label(sc).startswith("noise fitted on the scored data")
     with pytest.raises(scenario.ScenarioError, match="too little to calibrate on"):
-        scenario.replay_scenario(biased, estimator="il", offset=0.0, duration=T - 20)
+        replay.replay_scenario(biased, estimator="il", offset=0.0, duration=T - 20)
 
 
 def test_a_noise_model_names_the_robots_it_lacks(biased):
     rec = mrclam.load(biased)
     model = calibrate.calibrate(rec, [(0.0, 60.0)], dt=DT, robots=[1, 2])
     with pytest.raises(scenario.ScenarioError, match="noise model has no robot 3"):
-        scenario.replay_scenario(biased, estimator="il", noise=model)
+        replay.replay_scenario(biased, estimator="il", noise=model)
     # A simulated world has no readings to correct: a noise model there is refused, not ignored.
     data = scenario.load("wang2019").model_dump(mode="json")
     data["world"]["noise"] = model.model_dump(mode="json")
@@ -224,11 +224,11 @@ def test_coloured_odometry_noise_is_consistent_with_the_model_and_not_without(co
     half and scored on the second, stays within twice the state dimension; the white fit of
     before (fitted on the scored data, even) does not."""
     names = ("il", "ekf-ccl")
-    sc = scenario.replay_scenario(coloured, estimator="il")
+    sc = replay.replay_scenario(coloured, estimator="il")
     with_model = _nees(sc, names)
     # The same half scored: RMSEs of other spans do not compare.
-    without = _nees(scenario.replay_scenario(coloured, estimator="il", calibration="none", offset=sc.world.offset,
-                                             duration=sc.clock.duration), names)
+    without = _nees(replay.replay_scenario(coloured, estimator="il", calibration="none", offset=sc.world.offset,
+                                           duration=sc.clock.duration), names)
     for n in names:
         assert with_model[n]["nees"]["mean"] <= 6.0, n
         assert without[n]["nees"]["mean"] > 6.0, n
@@ -269,11 +269,11 @@ def test_dataset6_held_out_replay_is_consistent_and_no_less_accurate():
     every reference's mean NEES within twice the state dimension, and its position RMSE within
     5 % of the white noise of before on the same half."""
     names = ("il", "ekf", "ekf-ccl")
-    after = _nees(scenario.replay_scenario(FULL, estimator="ukf-dcl"), names)
+    after = _nees(replay.replay_scenario(FULL, estimator="ukf-dcl"), names)
     rec = mrclam.load(FULL)
     half = rec.duration / 2
-    before = _nees(scenario.replay_scenario(FULL, estimator="ukf-dcl", calibration="none", offset=half,
-                                            duration=rec.duration - half), names)
+    before = _nees(replay.replay_scenario(FULL, estimator="ukf-dcl", calibration="none", offset=half,
+                                          duration=rec.duration - half), names)
     for n in names:
         assert after[n]["nees"]["mean"] <= 6.0, (n, after[n]["nees"]["mean"])
         assert after[n]["rmse_m"] <= 1.05 * before[n]["rmse_m"], (n, after[n]["rmse_m"], before[n]["rmse_m"])

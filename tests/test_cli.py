@@ -211,7 +211,7 @@ def test_table_commands_print_json():
     from agents.cli import app
 
     commands = typer.main.get_command(app).commands
-    for name in ("run", "demo", "replay", "status", "faults", "study", "scenarios", "estimators"):
+    for name in ("run", "demo", "replay", "calibrate", "status", "faults", "study", "scenarios", "estimators"):
         assert any("--json" in p.opts for p in commands[name].params), name
 
 

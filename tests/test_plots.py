@@ -1,4 +1,6 @@
-"""plots/links.png: readable at 7 and 16 agents, with either radio model and faults close together."""
+"""plots/links.png: readable at 7 and 16 agents, with either radio model and faults close together;
+the run plots a reader can read: identical lines dashed, jumps of an estimate left as gaps, an
+inset on small target ellipses."""
 
 import itertools
 
@@ -212,4 +214,60 @@ def test_the_bound_is_drawn_in_each_panel_and_in_the_spread(tmp_path, monkeypatc
         ((_, line),) = drawn
         np.testing.assert_allclose(line.get_ydata(), np.median(floor, axis=1))
     monkeypatch.undo()
+    plt.close(fig)
+
+
+def test_a_jump_of_an_estimate_breaks_its_line_and_a_jump_of_the_truth_does_not():
+    truth = np.c_[np.arange(10.0), np.zeros(10)]  # 1 m a tick
+    est = truth + 0.2
+    est[6:] += [0.0, 400.0]  # a lost agent found again: 400 m in one tick
+    drawn = plots._without_jumps(est, truth)
+    assert drawn.shape == (11, 2) and np.isnan(drawn[6]).all()  # the break, between ticks 5 and 6
+    np.testing.assert_array_equal(np.delete(drawn, 6, axis=0), est)  # the track itself untouched
+    np.testing.assert_array_equal(plots._without_jumps(truth + 0.2, truth), truth + 0.2)
+    teleported = truth.copy()
+    teleported[6:] += [0.0, 400.0]  # the agent itself moved so (a replay's Vicon after a gap): followed, not cut
+    assert not np.isnan(plots._without_jumps(teleported + 0.2, teleported)).any()
+
+
+def target_axes(spread: float):
+    """A 1 km map of platform tracks along its left and bottom edges and a target near its
+    middle, estimated within `spread` m; the inset's draw callback and what it was called with."""
+    fig, ax = plt.subplots(figsize=(6, 6))
+    s = np.linspace(0, 1000, 50)
+    platforms = np.stack([np.c_[np.zeros(50), s], np.c_[s, np.zeros(50)]], axis=1)  # (T, 2 platforms, 2)
+    ax.plot(platforms[:, :, 0], platforms[:, :, 1], "k-")
+    rng = np.random.default_rng(0)
+    covered = np.array([420.0, 380.0]) + rng.uniform(-spread / 2, spread / 2, (200, 2))
+    ax.plot(covered[:, 0], covered[:, 1], "r.")
+    ax.set_aspect("equal", adjustable="datalim")
+    calls = []
+
+    def draw(inset, labels):
+        calls.append(labels)
+        inset.plot(covered[:, 0], covered[:, 1], "r.")
+
+    return fig, ax, platforms, covered, draw, calls
+
+
+def test_small_target_ellipses_get_an_inset_beside_them():
+    fig, ax, platforms, covered, draw, calls = target_axes(spread=4.0)
+    plots._target_inset(ax, np.r_[covered, [[np.nan, np.nan]]], platforms, draw)
+    fig.canvas.draw()
+    (inset,) = ax.child_axes
+    assert calls == [False]  # drawn again inside, without a second legend's labels
+    (x0, x1), (y0, y1) = inset.get_xlim(), inset.get_ylim()
+    assert x0 < covered[:, 0].min() and covered[:, 0].max() < x1 and y0 < covered[:, 1].min() < covered[:, 1].max() < y1
+    assert x1 - x0 < 20  # a zoom: the 4 m spread fills it, not the 1 km map
+    # Where it sits hides neither the target it zooms on nor any platform track.
+    box = inset.get_window_extent()
+    assert not box.contains(*ax.transData.transform(covered.mean(0)))
+    assert not any(box.contains(x, y) for x, y in ax.transData.transform(platforms.reshape(-1, 2)))
+    plt.close(fig)
+
+
+def test_targets_large_enough_to_read_on_the_map_get_no_inset():
+    fig, ax, platforms, covered, draw, calls = target_axes(spread=300.0)
+    plots._target_inset(ax, covered, platforms, draw)
+    assert ax.child_axes == [] and calls == []
     plt.close(fig)

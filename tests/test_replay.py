@@ -11,7 +11,7 @@ import pytest
 from netsim.sim import Simulation
 from netsim.world.recorded import ReplayWorld
 from swarmloc.datasets import mrclam
-from swarmloc.experiment import scenario
+from swarmloc.experiment import replay, scenario
 from swarmloc.experiment.results import RunRecord
 from swarmloc.experiment.runner import InProcessRunner, make_nodes
 
@@ -76,7 +76,7 @@ def test_bad_replay_scenarios_name_the_field(synth, world, field):
 
 def test_a_duration_beyond_the_recording_is_refused(synth):
     with pytest.raises(scenario.ScenarioError, match="clock.duration: the recording has 59.975 s after the offset"):
-        scenario.replay_scenario(synth, estimator="il", duration=500.0)
+        replay.replay_scenario(synth, estimator="il", duration=500.0)
 
 
 def test_relative_paths_are_taken_from_the_scenario_file(synth, tmp_path):
@@ -87,7 +87,7 @@ def test_relative_paths_are_taken_from_the_scenario_file(synth, tmp_path):
 
 
 def test_the_replay_world_delivers_the_recording(synth):
-    sc = scenario.replay_scenario(synth, estimator="il", dt=0.1, gate=None, calibration="none")
+    sc = replay.replay_scenario(synth, estimator="il", dt=0.1, gate=None, calibration="none")
     world = ReplayWorld(sc)
     rec = mrclam.load(synth)
     frames = [world.step() for _ in range(sc.clock.steps + 1)]
@@ -106,7 +106,7 @@ def test_the_replay_world_delivers_the_recording(synth):
 
 
 def test_truth_is_nan_in_a_vicon_gap_and_the_radio_keeps_the_last_position(synth):
-    sc = scenario.replay_scenario(synth, estimator="il", dt=0.1, gate=None, calibration="none")
+    sc = replay.replay_scenario(synth, estimator="il", dt=0.1, gate=None, calibration="none")
     world = ReplayWorld(sc)
     gap = []
     for k in range(sc.clock.steps + 1):
@@ -120,7 +120,7 @@ def test_truth_is_nan_in_a_vicon_gap_and_the_radio_keeps_the_last_position(synth
 
 
 def test_metrics_skip_ticks_without_truth(synth):
-    sc = scenario.replay_scenario(synth, estimator="il", dt=0.1, gate=None, calibration="none")
+    sc = replay.replay_scenario(synth, estimator="il", dt=0.1, gate=None, calibration="none")
     record = InProcessRunner(Simulation(sc), make_nodes("il", sc)).run()
     from swarmloc.experiment.results import metrics
 
@@ -165,7 +165,7 @@ def test_replay_over_agent_processes_equals_in_process(cli, synth, tmp_path, est
 @pytest.mark.parametrize("source", ["synthetic", pytest.param("Dataset6", marks=needs_full)])
 def test_ukf_dcl_equals_the_centralized_ukf_on_a_replay(synth, source):
     path = synth if source == "synthetic" else FULL
-    sc = scenario.replay_scenario(path, estimator="ukf-dcl", duration=30.0, calibration="scored")
+    sc = replay.replay_scenario(path, estimator="ukf-dcl", duration=30.0, calibration="scored")
     record = InProcessRunner(Simulation(sc), make_nodes("ukf-dcl", sc)).run(RunRecord.for_scenario(sc))
     from swarmloc.experiment.results import compute_references
 
@@ -178,7 +178,7 @@ def test_ukf_dcl_equals_the_centralized_ukf_on_a_replay(synth, source):
 def test_link_faults_apply_to_a_replay(synth):
     """The radio of a replay is netsim's: a partition cuts the chains, and UKF-DCL's estimates
     then part from the centralized filter's (which sees everything) until it heals."""
-    base = scenario.replay_scenario(synth, estimator="ukf-dcl", duration=20.0, calibration="none")
+    base = replay.replay_scenario(synth, estimator="ukf-dcl", duration=20.0, calibration="none")
     cut = base.with_overrides(faults=[{"at": 5.0, "action": "partition", "groups": [[1], [2, 3]], "duration": 10.0}])
     sim = Simulation(cut)
     record = InProcessRunner(sim, make_nodes("ukf-dcl", cut)).run(RunRecord.for_scenario(cut))
@@ -210,9 +210,9 @@ def test_a_recording_with_bad_numbers_is_refused_or_replayed_without_them(synth,
 
     with_range(10, "nan")
     with pytest.raises(scenario.ScenarioError, match=r"Robot1_Measurement.dat: data row \d+ holds a non-finite value"):
-        scenario.replay_scenario(bad, estimator="il")
+        replay.replay_scenario(bad, estimator="il")
     with_range(10, "-1.0")
-    sc = scenario.replay_scenario(bad, estimator="il", duration=10.0, gate=None, calibration="none")
+    sc = replay.replay_scenario(bad, estimator="il", duration=10.0, gate=None, calibration="none")
     sim = Simulation(sc)
     record = InProcessRunner(sim, make_nodes("il", sc)).run(RunRecord.for_scenario(sc))
     assert sim.world.dropped["negative range"] == 1
@@ -228,7 +228,7 @@ def test_dataset6_every_cooperative_reference_beats_dead_reckoning_on_every_robo
     with landmarks about 0.22 m, the centralized EKF with everything about 0.13 m)."""
     # The white noise fitted on the whole recording, as the independent EKF had it: the default
     # replay (calibrated on one half, scoring the other) is held to its own targets in test_calibrate.py.
-    sc = scenario.replay_scenario(FULL, estimator="ukf-dcl", calibration="none")
+    sc = replay.replay_scenario(FULL, estimator="ukf-dcl", calibration="none")
     record = InProcessRunner(Simulation(sc), {}).run(RunRecord.for_scenario(sc))  # the frames only
     from swarmloc.experiment.results import compute_references, metrics
 

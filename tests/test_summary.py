@@ -1,16 +1,19 @@
 """The run summary says what is good and what is not: the columns' roles, identical estimators,
-an estimator worse than the baseline and whether its formation says why, drops in words, the
-ground station; complete in a pipe. And the metrics behind it (identical_estimates,
-formation_errors)."""
+an estimator worse than the baseline and whether its formation says why, drops in words (at the
+end, and live while a real-time run goes), the ground station; complete in a pipe. And the
+metrics behind it (identical_estimates, formation_errors)."""
 
 import io
 import json
+import queue
 import sys
+import time
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from agents import launcher
+from agents import launcher, summary
 from swarmloc.experiment.results import RunRecord, Trace, formation_errors, identical_estimates
 
 
@@ -46,7 +49,7 @@ def printed(tmp_path, monkeypatch, m: dict) -> str:
     monkeypatch.setattr(sys, "stdout", out)
     from swarmloc.process import console
 
-    launcher.print_summary(tmp_path, [], console())
+    summary.print_summary(tmp_path, [], console())
     return out.getvalue()
 
 
@@ -68,13 +71,13 @@ def test_the_summary_marks_roles_and_says_what_is_good(tmp_path, monkeypatch):
 def test_a_worse_estimator_whose_formation_is_not_better_gets_no_explanation():
     m = metrics()
     m["estimators"]["ukf-ccl"]["formation_rmse_m"] = 30.0
-    notes = launcher.summary_notes(m, ["il", "ukf-ccl", "csl-ctl", "il-ctl"])
+    notes = summary.summary_notes(m, ["il", "ukf-ccl", "csl-ctl", "il-ctl"])
     worse = [n for n in notes if n.startswith("ukf-ccl")]
     assert len(worse) == 1 and "formation" not in worse[0]
 
 
 def test_the_ground_station_is_named():
-    notes = launcher.summary_notes(metrics(ground_stations=[4]), ["il"])
+    notes = summary.summary_notes(metrics(ground_stations=[4]), ["il"])
     assert any(n.startswith("agent 4: ground station") for n in notes)
 
 
@@ -82,17 +85,71 @@ def test_the_ground_station_is_named():
 def test_dropped_measurements_are_summarized_and_warned_in_real_time(transport, warned):
     stats = {"1": {"measurements_dropped": 900, "measurements_used": 100},
              "2": {"measurements_dropped": 100, "measurements_used": 900}}
-    notes = launcher.measurement_drops(metrics(agent_stats=stats, transport=transport))
+    notes = summary.measurement_drops(metrics(agent_stats=stats, transport=transport))
     assert len(notes) == 1 and "dropped 1000 of their 2000 measurements (50%)" in notes[0]
     assert ("not keeping up" in notes[0]) == warned
 
 
 def test_a_few_drops_are_counted_not_warned():
     stats = {"1": {"measurements_dropped": 5, "measurements_used": 995}}
-    notes = launcher.measurement_drops(metrics(agent_stats=stats, transport="zenoh-realtime"))
+    notes = summary.measurement_drops(metrics(agent_stats=stats, transport="zenoh-realtime"))
     assert "(0%)" in notes[0] or "(1%)" in notes[0]
     assert "not keeping up" not in notes[0]
-    assert launcher.measurement_drops(metrics(agent_stats={"1": {"measurements_dropped": 0}})) == []
+    assert summary.measurement_drops(metrics(agent_stats={"1": {"measurements_dropped": 0}})) == []
+
+
+def test_the_live_drop_warning_says_when_the_agents_fall_behind(monkeypatch):
+    """_DropWatch, the warning on the console while a real-time run goes: each round is the
+    agents' counters so far, as ControlClient.agents() returns them (here fed by the test);
+    it speaks when a large share of what came since the last round was dropped."""
+    feed: queue.Queue = queue.Queue()
+
+    class Agents:
+        def __init__(self, swarm, connect):
+            pass
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def agents(self):
+            stats = feed.get(timeout=10)
+            if stats is None:
+                raise ConnectionError("the session closed")
+            return SimpleNamespace(stats=stats)
+
+    monkeypatch.setattr("agents.control.ControlClient", Agents)
+    monkeypatch.setattr(launcher._DropWatch, "EVERY_S", 0.0)
+    watch = launcher._DropWatch("s", "tcp/127.0.0.1:7447")
+
+    def poll(stats: dict) -> str | None:
+        feed.put(stats)
+        end = time.monotonic() + 10
+        while watch.rounds.empty():
+            assert time.monotonic() < end, "the watch's thread took no round"
+            time.sleep(0.005)
+        return watch.check()
+
+    def counters(**agents):  # agent: (dropped, used) so far
+        return {a: {"measurements_dropped": d, "measurements_used": u, "k": 10} for a, (d, u) in agents.items()}
+
+    try:
+        assert watch.check() is None  # no round yet
+        assert poll({"1": {"k": 10}}) is None  # agents that drop nothing by design (no chains) report no drops
+        assert poll(counters(a=(0, 50), b=(1, 49))) is None  # 1 %
+        assert poll(counters(a=(5, 52), b=(6, 50))) is None  # 10 of 13 since: too few to judge
+        warning = poll(counters(a=(65, 72), b=(66, 70)))  # 120 dropped and 40 used since the last round
+        assert warning is not None and "dropped 75% of their measurements" in warning
+        assert "--speed" in warning and "lockstep" in warning  # what to do about it
+        assert poll(counters(a=(200, 80), b=(200, 80))) is None  # as bad, but it said so a moment ago
+        monkeypatch.setattr(launcher._DropWatch, "QUIET_S", 0.0)
+        assert "dropped 100%" in poll(counters(a=(300, 80), b=(300, 80)))
+    finally:
+        feed.put(None)  # the client fails: the watch ends quietly, the run does not depend on it
+        watch.close()
+    assert not watch.thread.is_alive()
 
 
 # ------------------------------------------------------------------ the metrics behind it

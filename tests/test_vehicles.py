@@ -141,7 +141,7 @@ def fly(model, reference, seconds, x0=None):
         x = model.step(x, ctl.command(x, k * DT, DT if k else 0.0), DT)
         t = (k + 1) * DT
         pos.append(np.linalg.norm(x[:3] - reference.derivatives(t, 0)[0]))
-        yaw.append(abs(V._wrap(model.yaw(x) - reference.yaw_derivatives(t)[0])))
+        yaw.append(abs(V.wrap_yaw(model.yaw(x) - reference.yaw_derivatives(t)[0])))
     return np.array(pos), np.array(yaw)
 
 

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Optional
 
@@ -59,6 +60,8 @@ def calibrate(
                                         help="cross-validation blocks per window behind the stds (default 2; 1: in "
                                         "sample)"),
     force: bool = typer.Option(False, "--force", help="overwrite --out if it exists"),
+    as_json: bool = typer.Option(False, "--json", help="print the noise model as JSON (noise.yaml's fields) instead "
+                                 "of the table, for scripts (`wrote ...` goes to stderr)"),
 ):
     """Fit a recording's noise model against its Vicon truth: per robot, the odometry's lags and
     command corrections, the camera's range and bearing bias for landmarks and for robots, and
@@ -85,6 +88,9 @@ def calibrate(
         model.save(out)
     except OSError as exc:
         raise Failure(f"{out}: cannot write: {exc.strerror or exc}", 2) from None
-    c = console()
-    c.print(model_table(model))
-    c.print(f"wrote {out}")
+    if as_json:
+        typer.echo(json.dumps(model.model_dump(mode="json"), indent=1))
+    else:
+        console().print(model_table(model))
+    # stdout is the model's alone with --json: a script parses it whole.
+    console(stderr=as_json).print(f"wrote {out}")

@@ -74,7 +74,9 @@ def ekf_update(
     return x + K @ nu, _sym(A @ P @ A.T + K @ R @ K.T), nu, S
 
 
-def _objective(criterion: str) -> Callable[[np.ndarray], float]:
+def objective(criterion: str) -> Callable[[np.ndarray], float]:
+    """The cost a fusion weight minimises, as a function of the fused covariance: its trace
+    ("trace") or its log determinant ("det")."""
     if criterion == "trace":
         return lambda P: float(np.trace(P))
     if criterion == "det":
@@ -87,7 +89,7 @@ def _objective(criterion: str) -> Callable[[np.ndarray], float]:
     raise ValueError(f"criterion is one of {CRITERIA}, got {criterion!r}")
 
 
-def _best_omega(cost: Callable[[float], float]) -> float:
+def best_omega(cost: Callable[[float], float]) -> float:
     """argmin of cost on [0, 1].
 
     Both criteria are convex in omega, so bounded Brent finds the interior minimum; but it
@@ -136,8 +138,8 @@ def covariance_intersection(
         return P @ (w * ya + (1.0 - w) * yb), P
 
     if omega is None:
-        f = _objective(criterion)
-        omega = _best_omega(lambda w: f(fuse(w)[1]))
+        f = objective(criterion)
+        omega = best_omega(lambda w: f(fuse(w)[1]))
     omega = _check_omega(omega)
     x, P = fuse(omega)
     return x, P, omega
@@ -187,14 +189,14 @@ def ci_update(
         return x_new, P_new
 
     if omega is None:
-        f = _objective(criterion)
+        f = objective(criterion)
 
         def cost(w: float) -> float:
             if w == 0.0 and not invertible:
                 return np.inf
             return f(fuse(w)[1])
 
-        omega = _best_omega(cost)
+        omega = best_omega(cost)
     omega = _check_omega(omega)
     x_new, P_new = fuse(omega)
     return x_new, P_new, omega

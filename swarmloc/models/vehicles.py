@@ -80,7 +80,9 @@ def rot_z(phi: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def _wrap(a: float) -> float:
+def wrap_yaw(a: float) -> float:
+    """Angle a (a float) to [-pi, pi), in Python arithmetic: the scalar form for per-step code
+    (the vehicles' controllers and EKFs); measurements.wrap_angle is the numpy form for arrays."""
     return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
@@ -458,7 +460,7 @@ class CircleReference:
             return 0.0, 0.0, 0.0
         w = self.rate
         psi = self.phase + w * t + math.copysign(0.5 * math.pi, w)
-        return _wrap(psi), w, 0.0
+        return wrap_yaw(psi), w, 0.0
 
     def start_state(self, model: VehicleModel) -> np.ndarray:
         """The vehicle at the reference's t = 0 point and yaw, level and at rest (a hovering
@@ -560,7 +562,7 @@ class QuadrotorController:
         D = max(R[0, 0] ** 2 + R[1, 0] ** 2, 1e-3)  # cos^2(pitch): protected near +-90 deg
         psi = math.atan2(R[1, 0], R[0, 0])
         psid = (wz * R[2, 2] + wy * R[2, 1]) / D
-        e_psi = _wrap(psi - psi_r)
+        e_psi = wrap_yaw(psi - psi_r)
         self._int_psi = float(np.clip(self._int_psi + e_psi * dt, -1.0, 1.0))
         lp = self.lam_psi
         psidd = psidd_r - 3.0 * lp * (psid - psid_r) - 3.0 * lp**2 * e_psi - lp**3 * self._int_psi

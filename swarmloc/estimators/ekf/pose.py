@@ -222,7 +222,7 @@ def split_ci_update(x: np.ndarray, P: np.ndarray, z_est: np.ndarray, Pz_dep: np.
     then carries through: consistent for any cross-covariance, and unlike fusion.ci_update it
     does not inflate the independent part. w minimises trace or det of the result; w = 1
     returns (x, P) as copies. Returns (x+, P+, w)."""
-    objective = fusion._objective(criterion)
+    objective = fusion.objective(criterion)
 
     def fuse(w: float) -> tuple[np.ndarray, np.ndarray]:
         if w == 1.0:
@@ -231,7 +231,7 @@ def split_ci_update(x: np.ndarray, P: np.ndarray, z_est: np.ndarray, Pz_dep: np.
         return x_new, P_new
 
     # w = 0 would take z_est alone, which leaves what H does not observe unbounded.
-    omega = fusion._best_omega(lambda w: np.inf if w == 0.0 else objective(fuse(w)[1]))
+    omega = fusion.best_omega(lambda w: np.inf if w == 0.0 else objective(fuse(w)[1]))
     return (*fuse(omega), omega)
 
 

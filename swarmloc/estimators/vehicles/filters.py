@@ -50,7 +50,7 @@ import math
 import numpy as np
 
 from swarmloc.estimators.ekf.common import checked
-from swarmloc.models.vehicles import VehicleModel, relpos, relpos_jacobian
+from swarmloc.models.vehicles import VehicleModel, relpos, relpos_jacobian, wrap_yaw
 
 # Added to the process noise on every predict with dt > 0 (state units squared, per tick).
 # 1e-10 is a 1e-5 (m, rad, m/s ...) standard deviation per tick: far below anything the
@@ -98,11 +98,6 @@ def _dt(dt) -> float:
     if not (math.isfinite(dt) and dt >= 0.0):
         raise ValueError(f"dt must be finite and >= 0, got {dt}")
     return dt
-
-
-def _wrap(a: float) -> float:
-    """Angle to [-pi, pi)."""
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
 # ---------------------------------------------------------------------------------------------
@@ -215,7 +210,7 @@ def _attitude_innovation(model: VehicleModel, x: np.ndarray, z) -> np.ndarray:
             z = -z
         return z - h
     if model.orientation_dim == 1:
-        return np.array([_wrap(float(z[0] - h[0]))])
+        return np.array([wrap_yaw(float(z[0] - h[0]))])
     return z - h
 
 
@@ -310,7 +305,7 @@ class VehicleEkf:
         the trace of all of P+. (Minimising the position block's trace alone let the unseen
         states' covariance grow by 1 / w at every fusion: in the closed-loop caravan it passed
         1e9 within 8 s of losing GPS.) Returns (NIS at the chosen w, w); w = 1 is no update."""
-        from swarmloc.filters.fusion import _best_omega, _objective
+        from swarmloc.filters.fusion import best_omega, objective
 
         z = _vector(z, 3, "relpos z")
         s = _stds(std, 3, "relpos std")
@@ -324,14 +319,14 @@ class VehicleEkf:
         def fuse(w: float):
             return _kalman_update(self.x, self.P / w, Hb, e, R / (1.0 - w))
 
-        f = _objective(criterion)
+        f = objective(criterion)
 
         def cost(w: float) -> float:
             if w <= 0.0:
                 return math.inf  # H sees 3 of n states: w = 0 would discard the rest of the prior
             return f(self.P) if w >= 1.0 else f(fuse(w)[1])
 
-        w = _best_omega(cost)
+        w = best_omega(cost)
         if w >= 1.0:
             return 0.0, 1.0
         x, P, nis = fuse(w)
