@@ -163,7 +163,8 @@ def test_a_scenario_names_a_references_settings_and_the_run_uses_them(tmp_path_f
         plain.with_overrides(reference_params={"ekf": {"odometry_bias": True}})
     sc = replay.replay_scenario(path, estimator="ukf-dcl", duration=20.0, calibration="scored", odometry_bias=True)
     assert sc.reference_params == {"ekf-ccl": {"odometry_bias": True}, "ukf-ccl": {"odometry_bias": True}}
-    assert replay.replay_label(sc).endswith("; ekf-ccl and ukf-ccl with odometry bias states")
+    assert sc.estimator.params == {"odometry_bias": True}  # the agents' ukf-dcl with the model of its references
+    assert replay.replay_label(sc).endswith("; ukf-dcl, ekf-ccl and ukf-ccl with odometry bias states")
     import yaml
 
     assert scenario.parse(yaml.safe_load(sc.to_yaml())).reference_params == sc.reference_params
@@ -243,32 +244,68 @@ def test_replay_without_landmarks_turns_the_bias_states_on_by_default(tmp_path, 
         sc, out = replay_cli(monkeypatch, path, *(flags if "--odometry-horizon" in flags else (*flags, *span)))
         text = " ".join(out.split())  # rich wraps the label at the terminal's width
         assert sc.reference_params == want, flags
+        assert sc.estimator.params.get("odometry_bias", False) == bool(want), flags
         assert ("with odometry bias states" in text) == bool(want), (flags, text)
         assert ("the default without landmarks" in text) == default, (flags, text)
 
 
-@pytest.mark.slow  # 8-24 s on 2 shared cores: "several seconds or more" (pyproject.toml's markers)
+@pytest.mark.slow  # a minute on 2 shared cores: "several seconds or more" (pyproject.toml's markers)
 @pytest.mark.skipif(not FULL.is_dir(), reason="the shared MR.CLAM Dataset6 is not beside the repository")
 def test_dataset6_the_default_robots_only_replay_is_consistent(monkeypatch):
     """`swarmloc replay Dataset6 --no-landmarks` as it is, scored on the half it scores (the second,
-    the noise calibrated on the first): ekf-ccl and ukf-ccl with the default bias states within a
-    mean NEES of 6 and a position RMSE within 5 % of the white noise of before (fitted on the
-    scored data even) (docs/replay.md: 4.2 and 4.3, 0.249 and 0.250 m against 0.296 and 0.291)."""
+    the noise calibrated on the first): the agents' ukf-dcl and the references ekf-ccl and ukf-ccl
+    with the default bias states within a mean NEES of 6 and a position RMSE within 5 % of the
+    white noise of before (fitted on the scored data even) (docs/replay.md: 4.2 and 4.3, 0.249
+    and 0.250 m against 0.296 and 0.291), ukf-dcl equal to ukf-ccl."""
     from netsim.sim import Simulation
     from swarmloc.experiment.replay import replay_scenario
     from swarmloc.experiment.results import RunRecord, compute_references, metrics
-    from swarmloc.experiment.runner import InProcessRunner
+    from swarmloc.experiment.runner import InProcessRunner, make_nodes
 
     sc, _ = replay_cli(monkeypatch, FULL, "--no-landmarks")
     assert sc.reference_params == BIASED and sc.world.offset > 400  # the second half
+    assert sc.estimator.name == "ukf-dcl" and sc.estimator.params == {"odometry_bias": True}
     before = replay_scenario(FULL, offset=sc.world.offset, duration=sc.clock.duration, landmarks=False,
                              calibration="none")
+    names = ["ukf-dcl", *BIASED]
     got = {}
     for s in (sc, before):
-        record = InProcessRunner(Simulation(s), {}).run(RunRecord.for_scenario(s))
+        record = InProcessRunner(Simulation(s), make_nodes("ukf-dcl", s)).run(RunRecord.for_scenario(s))
         compute_references(s.with_overrides(bound=False), record, list(BIASED))
-        got[s is sc] = metrics(record, list(BIASED))["estimators"]
-    for name in BIASED:
+        got[s is sc] = metrics(record, names)["estimators"]
+    assert abs(got[True]["ukf-dcl"]["rmse_m"] - got[True]["ukf-ccl"]["rmse_m"]) < 1e-9
+    for name in names:
         now, then = got[True][name], got[False][name]
         assert now["nees"]["mean"] <= 6.0, (name, now["nees"])
         assert now["rmse_m"] <= 1.05 * then["rmse_m"], (name, now["rmse_m"], then["rmse_m"])
+
+
+def test_ukf_dcl_with_the_bias_states_equals_ukf_ccl_with_them(tmp_path_factory):
+    """The same setting gives UKF-DCL the model of its centralized twin: 5-dimensional blocks in
+    its chains, estimates of the pose alone, and UKF-CCL's estimates tick by tick (robots only, a
+    synthetic recording); a checkpoint (the pose alone) resumes with the biases at their prior."""
+    import mrclam_synth
+
+    from netsim.sim import Simulation
+    from swarmloc.experiment import replay
+    from swarmloc.experiment.results import RunRecord, compute_references
+    from swarmloc.experiment.runner import InProcessRunner, make_nodes
+
+    path = mrclam_synth.write(tmp_path_factory.mktemp("synth") / "MRCLAM_Synthetic", seed=4)
+    sc = replay.replay_scenario(path, estimator="ukf-dcl", duration=20.0, calibration="none", landmarks=False,
+                                odometry_bias=True)
+    nodes = make_nodes("ukf-dcl", sc)
+    record = InProcessRunner(Simulation(sc), nodes).run(RunRecord.for_scenario(sc))
+    compute_references(sc.with_overrides(bound=False), record, ["ukf-ccl"])
+    dcl, ccl = record.est["ukf-dcl"], record.est["ukf-ccl"]
+    assert len(dcl) > 150 and all(n.x.shape == (5,) for n in nodes.values())
+    for k in dcl:
+        for a, e in dcl[k].items():
+            assert e.mean.shape == (3,) and e.cov.shape == (3, 3)
+            assert np.abs(e.mean - ccl[k][a].mean).max() < 1e-10 and np.abs(e.cov - ccl[k][a].cov).max() < 1e-10
+    plain = make_nodes("ukf-dcl", sc.with_overrides(**{"estimator.params": {}}))
+    assert all(n.x.shape == (3,) for n in plain.values())
+    node = nodes[record.ids[0]]
+    e = node.estimate()
+    node.resume(e.k, e.mean, e.cov)
+    assert node.x.shape == (5,) and np.array_equal(node.x[:3], e.mean) and node.x[3:].tolist() == [0.0, 0.0]

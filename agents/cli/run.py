@@ -112,14 +112,14 @@ REPLAY_OPTIONS = {"world.path": "PATH", "world.offset": "--offset", "world.robot
 
 
 def replay_odometry_bias(given: bool | None, landmarks: bool, odometry_horizon: float | None) -> tuple[bool, str]:
-    """Whether a replay's ekf-ccl and ukf-ccl carry odometry bias states, and what its label adds
-    when that is the default. Given (--odometry-bias/--no-odometry-bias): as given. By default on
-    without landmarks, where nothing absolute pins the formation and the odometry's lasting error
-    accumulates over the whole run: with a calibrated model the two miss a mean NEES of 6 without
-    them (6.07 and 6.09 over Dataset6, each half held out) and meet it with them (3.11 and 3.13 at
-    the default walks, RMSE 9-10 % better than before calibration; docs/replay.md). Off with
-    landmarks (there they cost accuracy on held-out data, docs/mrclam.md) and with the white
-    noise of before (--odometry-horizon), which the bias states were never measured with."""
+    """Whether a replay's ukf-dcl, ekf-ccl and ukf-ccl carry odometry bias states, and what its
+    label adds when that is the default. Given (--odometry-bias/--no-odometry-bias): as given. By
+    default on without landmarks, where nothing absolute pins the formation and the odometry's
+    lasting error accumulates over the whole run: with a calibrated model the filters miss a mean
+    NEES of 6 without them (6.07-6.09 over Dataset6, each half held out) and meet it with them
+    (3.11-3.13 at the default walks, RMSE 9-10 % better than before calibration; docs/replay.md).
+    Off with landmarks (there they cost accuracy on held-out data, docs/mrclam.md) and with the
+    white noise of before (--odometry-horizon), which the bias states were never measured with."""
     if given is not None:
         return given, ""
     if landmarks or odometry_horizon is not None:
@@ -151,8 +151,8 @@ def replay(
                                                      help="the uncalibrated white noise of before `calibrate`, its "
                                                      "odometry fitted over this many seconds (docs/replay.md)"),
     odometry_bias: Optional[bool] = typer.Option(None, "--odometry-bias/--no-odometry-bias",
-                                                 help="the ekf-ccl and ukf-ccl references with per-robot odometry "
-                                                 "bias states (docs/mrclam.md) (default: on with --no-landmarks and "
+                                                 help="ukf-dcl and the ekf-ccl and ukf-ccl references with per-robot "
+                                                 "odometry bias states (docs/mrclam.md) (default: on with --no-landmarks and "
                                                  "a calibrated noise model, off otherwise)"),
     realtime: bool = typer.Option(False, "--realtime", help="tick at the recording's pace (times --speed) "
                                   "instead of as fast as the agents go"),

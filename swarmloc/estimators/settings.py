@@ -17,10 +17,27 @@ class NoSettings(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
-class DclSettings(BaseModel):
-    """UKF-DCL settings."""
+class OdometryBiasSettings(BaseModel):
+    """Per-robot odometry bias states on planar-pose robots (swarmloc.models.motion.PlanarPoseBias,
+    docs/mrclam.md): one set of settings for every estimator that can carry them, so the distributed
+    filter and its centralized reference run the same model."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
+
+    odometry_bias: bool = Field(False, description="planar-pose: augment each robot's pose with a scale factor on its "
+                                "measured speed and a bias on its measured turn rate, both random walks; estimates "
+                                "report the pose alone")
+    speed_scale_walk: float = Field(1e-5, ge=0, description="random-walk intensity of the speed scale factor (1/s: "
+                                    "its variance grows by this much per second)")
+    turn_rate_bias_walk: float = Field(1e-6, ge=0, description="random-walk intensity of the turn-rate bias "
+                                       "((rad/s)^2 per s)")
+    speed_scale_std: float = Field(0.05, gt=0, description="prior std of the speed scale factor (0.05: 5 %)")
+    turn_rate_bias_std: float = Field(0.02, gt=0, description="prior std of the turn-rate bias (rad/s)")
+
+
+class DclSettings(OdometryBiasSettings):
+    """UKF-DCL settings: bounded chains; on planar-pose robots, the odometry bias states of its
+    centralized twin UKF-CCL (the same settings give the same filter)."""
 
     max_chain: int | None = Field(
         None, ge=2, description="the most platforms one chain visits, the measuring and the measured one included "
@@ -100,18 +117,5 @@ class DnbpSettings(BaseModel):
         return v
 
 
-class CclSettings(BaseModel):
-    """EKF-CCL and UKF-CCL settings: on planar-pose robots, per-robot odometry bias states
-    (swarmloc.models.motion.PlanarPoseBias, docs/mrclam.md)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    odometry_bias: bool = Field(False, description="planar-pose: augment each robot's pose with a scale factor on its "
-                                "measured speed and a bias on its measured turn rate, both random walks; estimates "
-                                "report the pose alone")
-    speed_scale_walk: float = Field(1e-5, ge=0, description="random-walk intensity of the speed scale factor (1/s: "
-                                    "its variance grows by this much per second)")
-    turn_rate_bias_walk: float = Field(1e-6, ge=0, description="random-walk intensity of the turn-rate bias "
-                                       "((rad/s)^2 per s)")
-    speed_scale_std: float = Field(0.05, gt=0, description="prior std of the speed scale factor (0.05: 5 %)")
-    turn_rate_bias_std: float = Field(0.02, gt=0, description="prior std of the turn-rate bias (rad/s)")
+class CclSettings(OdometryBiasSettings):
+    """EKF-CCL and UKF-CCL settings: on planar-pose robots, per-robot odometry bias states."""

@@ -15,8 +15,8 @@ from swarmloc.datasets.calibrate import NoiseModel
 from swarmloc.experiment.scenario import SCENARIO_VERSION, Scenario, ScenarioError, parse, recording
 
 REPLAY_REFERENCES = ("il", "ekf", "ekf-ccl", "ukf-ccl")
-
-
+BIAS_ESTIMATORS = ("ukf-dcl", "ekf-ccl", "ukf-ccl")
+"""Estimators with per-robot odometry bias states (OdometryBiasSettings): UKF-DCL and its references."""
 CALIBRATIONS = ("held-out", "scored", "none")
 
 
@@ -89,8 +89,8 @@ def replay_scenario(path, *, estimator: str = "ukf-dcl", dt: float = 0.1, durati
     model before calibration, white noise pooled over the robots and fitted on the whole
     recording (mrclam.fit_noise, odometry tick by tick or over odometry_horizon s).
 
-    `odometry_bias`: the references ekf-ccl and ukf-ccl with their per-robot odometry bias
-    states at their default walks (CclSettings, docs/mrclam.md)."""
+    `odometry_bias`: the references ekf-ccl and ukf-ccl, and the agents' ukf-dcl, with their
+    per-robot odometry bias states at their default walks (OdometryBiasSettings, docs/mrclam.md)."""
     from swarmloc.datasets import calibrate, mrclam
     from swarmloc.estimators import REGISTRY
 
@@ -139,7 +139,9 @@ def replay_scenario(path, *, estimator: str = "ukf-dcl", dt: float = 0.1, durati
         "references": [r for r in REPLAY_REFERENCES if r != estimator and "planar-pose" in REGISTRY[r].models],
     }
     if odometry_bias:
-        data["reference_params"] = {r: {"odometry_bias": True} for r in ("ekf-ccl", "ukf-ccl") if r in data["references"]}
+        data["reference_params"] = {r: {"odometry_bias": True} for r in BIAS_ESTIMATORS if r in data["references"]}
+        if estimator in BIAS_ESTIMATORS:  # the agents' filter with the model of its references
+            data["estimator"]["params"] = {"odometry_bias": True}
     return parse(data, f"replay of {p}")
 
 
@@ -152,7 +154,10 @@ def replay_label(scenario: Scenario) -> str:
         return ""
     end = w.offset + scenario.clock.duration
     biased = [r for r, params in scenario.reference_params.items() if params.get("odometry_bias")]
-    extra = f"; {' and '.join(biased)} with odometry bias states" if biased else ""
+    if scenario.estimator.params.get("odometry_bias"):
+        biased.insert(0, scenario.estimator.name)
+    names = ", ".join(biased[:-1]) + (" and " if len(biased) > 1 else "") + (biased[-1] if biased else "")
+    extra = f"; {names} with odometry bias states" if biased else ""
     if w.noise is None:
         _, sep, what = scenario.description.partition("; noise")
         return (("noise" + what) if sep else calibrate.label(None, Path(w.path).name, w.offset, end)) + extra

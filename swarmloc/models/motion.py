@@ -142,6 +142,10 @@ class PlanarPoseBias(PlanarPose):
         return cls(settings.speed_scale_walk, settings.turn_rate_bias_walk, settings.speed_scale_std,
                    settings.turn_rate_bias_std)
 
+    def args(self) -> list[float]:
+        """The constructor's arguments, in order, as plain numbers (what a NodeSpec carries)."""
+        return [float(self.walk[0]), float(self.walk[1]), float(self.prior_std[0]), float(self.prior_std[1])]
+
     def augment(self, x0: np.ndarray, P0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """A pose prior with the biases appended: zero, independent of the pose, prior_std each."""
         x = np.concatenate([np.asarray(x0, float)[:3], [0.0, 0.0]])

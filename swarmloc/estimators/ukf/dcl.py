@@ -65,6 +65,7 @@ from swarmloc.estimators.ukf.commits import CommitHistory
 from swarmloc.estimators.ukf.protocol import GIVE_UP_TICKS, LOG_COMMITS, NEIGHBOUR_TICKS, Key
 from swarmloc.estimators.ukf.rejoin import Multilateration
 from swarmloc.filters import kalman, plausibility
+from swarmloc.models.motion import PlanarPoseBias, reported_dim
 from swarmloc.node import (
     LANDMARK,
     RANGE,
@@ -95,14 +96,21 @@ class UkfDclNode(ChainSteps, CommitHistory, Node):
     def spec(cls, scenario, aid, settings=None) -> NodeSpec:
         est = scenario.estimation
         x0, P0 = scenario.prior(aid)
-        return NodeSpec.of(cls, aid=aid, x0=x0, P0=P0, model=scenario.agent(aid).model, spread=est.spread,
+        model = scenario.agent(aid).model
+        bias = PlanarPoseBias.from_settings(settings) if model == "planar-pose" else None
+        return NodeSpec.of(cls, aid=aid, x0=x0, P0=P0, model=model, spread=est.spread,
                            rejoin_std=est.rejoin_std, max_chain=getattr(settings, "max_chain", None),
                            landmarks=[[m.id, *m.position] for m in scenario.world.landmarks], gate=est.gate,
-                           gate_open_after=est.gate_open_after)
+                           gate_open_after=est.gate_open_after, odometry_bias=None if bias is None else bias.args())
 
     def __init__(self, aid, x0, P0, model="planar-speed-heading", spread: float | None = None, max_retries: int = 3,
                  rejoin_std: float | None = 15.0, max_chain: int | None = None, landmarks=(), gate: float | None = None,
-                 gate_open_after: int = 10):
+                 gate_open_after: int = 10, odometry_bias: list[float] | None = None):
+        if odometry_bias is not None:
+            # The pose with its odometry's bias states, as UKF-CCL's with the same settings (so
+            # the two stay equal): the chains carry 5-dimensional blocks, estimates the pose.
+            model = PlanarPoseBias(*odometry_bias)
+            x0, P0 = model.augment(x0, P0)
         super().__init__(aid, x0, P0, model)
         d = self.model.state_dim
         # F != I: the product of our transition Jacobians, the basis of our cross-covariance
@@ -168,14 +176,19 @@ class UkfDclNode(ChainSteps, CommitHistory, Node):
     # ------------------------------------------------------------------ state
 
     def estimate(self) -> Estimate:
-        return Estimate(self.k, self.x.copy(), self.row[self.id].copy())
+        r = reported_dim(self.model)
+        return Estimate(self.k, self.x[:r].copy(), self.row[self.id][:r, :r].copy())
 
     def resume(self, k, x, P) -> None:
         """Continue from a checkpoint: own mean and covariance only. The cross-covariances are
         gone, so the node is an orphan: the others drop theirs with it (covariance
-        intersection) when a chain next meets it, and it catches up on versions meanwhile."""
-        self.k, self.x = int(k), np.array(x, float)
-        self.row = {self.id: np.array(P, float)}
+        intersection) when a chain next meets it, and it catches up on versions meanwhile. A
+        checkpoint holds the estimate, the pose alone: bias states start again from their prior."""
+        x, P = np.array(x, float), np.array(P, float)
+        if x.shape[0] < self.model.state_dim:
+            x, P = self.model.augment(x, P)
+        self.k, self.x = int(k), x
+        self.row = {self.id: P}
         self.version, self.waiting, self.reported = {}, {}, None
         self.orphan, self.orphan_base = True, self.row[self.id].copy()
         if self.phi is not None:
