@@ -341,9 +341,8 @@ class Security(_Strict):
         if v is None:
             return None
         v = _base(info) / v.expanduser()
-        from swarmloc.wire.auth import Keyring
-
-        Keyring.load(v)  # a ValueError names the file and what is wrong with it
+        if not v.exists():  # its files are read with the agent's id (below): agent-<id>.secret, members.json
+            raise ValueError(f"{v}: no such key directory")
         return v
 
 
@@ -565,9 +564,12 @@ class AgentFileConfig(_Strict):
         if v.tls and v.keys is None:
             raise _FieldError(("tls",), "needs keys: the directory with ca.pem and this agent's certificate")
         if v.keys is not None and swarm is not None:
-            from swarmloc.wire.auth import Keyring
+            from swarmloc.wire.auth import Keyring, member_of
 
-            ring = Keyring.load(v.keys)
+            try:  # the agent's own keys (per-member identity) and the swarm's directory
+                ring = Keyring.load(v.keys, None if aid is None else member_of(aid))
+            except ValueError as exc:
+                raise _FieldError(("keys",), str(exc)) from None
             if ring.swarm != swarm:
                 raise _FieldError(("keys",), f"{v.keys} holds the keys of swarm {ring.swarm!r}, not {swarm!r}")
             missing = [f for f in ("ca.pem", f"agent-{aid}.pem", f"agent-{aid}.key") if not (v.keys / f).is_file()]
@@ -581,9 +583,9 @@ class AgentFileConfig(_Strict):
 
     @property
     def keyring(self):
-        from swarmloc.wire.auth import Keyring
+        from swarmloc.wire.auth import Keyring, member_of
 
-        return None if self.security.keys is None else Keyring.load(self.security.keys)
+        return None if self.security.keys is None else Keyring.load(self.security.keys, member_of(self.id))
 
     @property
     def state_file(self) -> Path | None:

@@ -174,11 +174,13 @@ class ControlClient:
         if keys:
             from swarmloc.wire import auth
 
-            try:
-                ring = auth.Keyring.load(Path(keys))
+            try:  # the operator's own keys; the hub's file (the admin's directory) can speak as it too
+                path = Path(keys)
+                ring = auth.Keyring.load(path, "operator" if (path / f"operator{auth.SECRET_SUFFIX}").exists() else None)
             except ValueError as exc:
                 raise Failure(str(exc), 2) from None
-            self.sealer, self.opener = auth.Sealer(ring, auth.operator()), auth.Opener(ring)
+            me = auth.operator()
+            self.sealer, self.opener = auth.Sealer(ring, me), auth.Opener(ring, me)
 
     def __enter__(self) -> "ControlClient":
         import zenoh
@@ -194,18 +196,21 @@ class ControlClient:
 
     def request(self, op: str, args: dict | None = None, timeout: float = 3.0) -> dict:
         from swarmloc.wire import auth
-        from swarmloc.wire.messages import Control, Reply
+        from swarmloc.wire.messages import Control
 
-        payload = wire.encode(Control(op, args or {}), 0, 0)
+        key = wire.Keys(self.swarm).control
+        # A nonce netsim's answer must hold, under netsim's seal for this operator: a captured
+        # answer (to another request, or another operator) is not this request's (issue 26).
+        nonce = auth.query_nonce()
+        payload = wire.encode(Control(op, {**(args or {}), "nonce": nonce}), 0, 0)
         if self.sealer is not None:
-            payload = self.sealer.seal(payload)
+            payload = self.sealer.seal(payload, key, auth.NETSIM)
         unreadable = None
-        for r in self.session.get(wire.Keys(self.swarm).control, payload=payload, timeout=timeout):
+        for r in self.session.get(key, payload=payload, timeout=timeout):
             if r.ok is None:
                 continue
             try:  # netsim's, sealed by netsim: anyone can answer a query, the first is not the answer
-                data = r.ok.payload.to_bytes()
-                body = wire.decode(data if self.opener is None else self.opener.open(data, 0)[0], expect=(Reply,)).body
+                body = auth.open_control_reply(self.opener, str(r.ok.key_expr), r.ok.payload.to_bytes(), nonce)
             except (wire.WireError, auth.AuthError) as exc:
                 unreadable = exc
                 continue

@@ -168,20 +168,21 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--swarm", default="default")
     p.add_argument("--connect", action="append", required=True, help="Zenoh endpoint (repeatable)")
     p.add_argument("--state-dir", type=Path, help="checkpoints: agent-ID.state.npy in this directory")
-    p.add_argument("--keys", type=Path, help="the swarm's key file: frames sealed and opened with it")
+    p.add_argument("--keys", type=Path, help="the swarm's key directory: each agent seals with its own keys (agent-<id>.secret)")
     p.add_argument("-v", "--verbose", action="store_true")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO if a.verbose else logging.WARNING,
                         format="%(asctime)s %(threadName)s %(levelname)s %(message)s")
     exit_on_sigterm()
     try:
-        keyring = None if a.keys is None else auth.Keyring.load(a.keys)
         agents = []
         for item in a.agent:
             aid, sep, spec = item.partition("=")
             if not sep or not aid.strip().isdigit():
                 raise ValueError(f"--agent {item}: expected ID=SPEC")
             state = None if a.state_dir is None else a.state_dir / f"agent-{int(aid)}.state.npy"
+            # Each agent its own keys (per-member identity): agent-<id>.secret of the directory.
+            keyring = None if a.keys is None else auth.Keyring.load(a.keys, auth.member_of(int(aid)))
             agents.append(Hosted(int(aid), Path(spec), AgentConfig(swarm=a.swarm, connect=tuple(a.connect),
                                                                    state_file=state, keyring=keyring)))
     except ValueError as exc:

@@ -253,7 +253,9 @@ class Gate:
 
         from swarmloc.wire import auth
 
+        # Frames for everyone only (me=None), signed by netsim: no member's key can seal them.
         self.opener = None if keys is None else auth.Opener(auth.Keyring.load(keys))
+        self.key = None if self.opener is None else {k: getattr(wire.Keys(self.opener.keyring.swarm), k) for k in self.TYPES}
         self.rejected: dict[str, Counter] = {k: Counter() for k in self.TYPES}
 
     def refuse(self, kind: str, reason: str, detail: str = "") -> None:
@@ -281,7 +283,7 @@ class Gate:
             return self.refuse(kind, "src-mismatch", f"src {env.src}")
         if self.opener is not None:
             try:
-                data, _ = self.opener.open(data, NETSIM_ID)
+                data, _ = self.opener.open(data, self.key[kind], NETSIM_ID)
             except auth.AuthError as exc:
                 return self.refuse(kind, f"auth-{exc.reason}", str(exc))
         try:
@@ -474,7 +476,7 @@ def _ended_early(out: Path, sc: Scenario, procs: Swarm) -> str | None:
 def _run_keys(sc: Scenario, swarm: str, out: Path) -> Path:
     """The key directory that seals the run's frames: the scenario's (its swarm must be this
     run's), or throwaway keys made for the run in logs/keys (docs/security.md)."""
-    from swarmloc.wire.auth import KEY_FILE, Keyring
+    from swarmloc.wire.auth import Keyring
 
     if sc.security.keys is not None:
         path = Path(sc.security.keys).expanduser()
@@ -488,7 +490,8 @@ def _run_keys(sc: Scenario, swarm: str, out: Path) -> Path:
         return path
     keys = out / "logs" / "keys"
     keys.mkdir(mode=0o700, parents=True, exist_ok=True)
-    Keyring.generate(swarm).save(keys / KEY_FILE)
+    # Per-member identity: the hub's file (netsim's), the directory, and each member's own keys.
+    Keyring.generate(swarm, sc.agent_ids).save_directory(keys)
     return keys
 
 

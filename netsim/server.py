@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
+import msgspec
 import numpy as np
 import zenoh
 
@@ -60,6 +61,8 @@ class SetupError(RuntimeError):
     pass
 
 
+MAX_LINK_ROWS = next(f.type.max_length for f in msgspec.inspect.type_info(Links).fields if f.name == "links")
+"""The rows a Links frame may carry (its decoder refuses more)."""
 LAST_TICK_GRACE = 2.0  # s a real-time run waits, after its last tick, for the agents to finish it
 
 
@@ -124,7 +127,10 @@ class NetsimServer:
         self.awaited: set[int] = set()  # agents lockstep waits for before its next tick
         ring = cfg.keyring
         self.sealer = auth.Sealer(ring, NETSIM_ID) if ring is not None else None
-        self.opener = auth.Opener(ring) if ring is not None else None
+        # The hub's ring: every member's MAC key derives from it (netsim opens each agent's frames
+        # with that agent's key and seals what it sends one agent with that agent's key); its
+        # broadcasts (clock, events, links) carry its signature.
+        self.opener = auth.Opener(ring, NETSIM_ID) if ring is not None else None
         # Refused in Zenoh's callbacks, before the queue: oversize, no seal or a wrong one.
         self.door = limits.Door(self.q, self.opener)
         self.recorder = None  # swarmloc.experiment.recording.Recorder, made by open()
@@ -158,7 +164,8 @@ class NetsimServer:
                     except ValueError:
                         return "unknown-agent"
 
-                door.admit(kind, s.payload, lambda d: (kind, key, d, stamp and (time.perf_counter(), s.attachment)), known)
+                door.admit(kind, s.payload, lambda d: (kind, key, d, stamp and (time.perf_counter(), s.attachment)), known,
+                           key=key)
             return arrived
 
         block = wire.publisher_options(zenoh)
@@ -214,8 +221,8 @@ class NetsimServer:
             self.ros2.close()
         self.session.close()
 
-    def _seal(self, data: bytes) -> bytes:
-        return data if self.sealer is None else self.sealer.seal(data)
+    def _seal(self, data: bytes, key: str, to: int = auth.BROADCAST) -> bytes:
+        return data if self.sealer is None else self.sealer.seal(data, key, to)
 
     def _open(self, kind: str, key: str, payload: bytes, sender: int | None = None) -> tuple[bytes, int | None] | None:
         """(frame, sealer) of an authentic payload (sealed by `sender` if given), or (payload,
@@ -228,9 +235,13 @@ class NetsimServer:
         except auth.AuthError as exc:
             return self._refuse(kind, key, f"auth-{exc.reason}", str(exc))
 
-    def _put(self, pub, msg, dst: int | None = None) -> None:
+    def _put(self, pub, msg, dst: int | None = None, to: int | None = None) -> None:
+        """`msg` on `pub`, sealed for `to` (default: `dst`, the envelope's receiver; without
+        either, for everyone: signed)."""
         self.seq += 1
-        data = self._seal(wire.encode(msg, NETSIM_ID, self.seq, dst))
+        to = dst if to is None else to
+        data = self._seal(wire.encode(msg, NETSIM_ID, self.seq, dst), self._pub_keys[id(pub)],
+                          auth.BROADCAST if to is None else to)
         pub.put(data)
         if self.recorder is not None:
             self.recorder.frame(self._pub_keys[id(pub)], data, self._rec_t())
@@ -413,7 +424,7 @@ class NetsimServer:
             return
         if nack is not None:
             self.seq += 1
-            data, sent = self._seal(wire.encode(nack, NETSIM_ID, self.seq)), None
+            data, sent = self._seal(wire.encode(nack, NETSIM_ID, self.seq), self.keys.radio_rx(r), r), None
         else:  # the sender's frame as it sealed it
             sent = self.sent_at.get((src, seq))
         self.delivered[r] += 1
@@ -427,13 +438,19 @@ class NetsimServer:
     # ---------------------------------------------------------------- control
 
     def _control(self, query) -> None:
+        key = str(query.key_expr)
+        asker, nonce = auth.BROADCAST, None  # until the request is open: a refusal is signed, for anyone
+
         def reply(ok: bool, error: str = "", data: dict | None = None):
-            query.reply(query.key_expr, self._seal(wire.encode(Reply(ok, error[:500], data or {}), NETSIM_ID, 0)))
+            # Sealed for the operator who asked (its MAC key), holding its request's nonce: a
+            # captured answer answers no other request (issue 26).
+            data = {**(data or {}), **({"nonce": nonce} if nonce else {})}
+            query.reply(key, self._seal(wire.encode(Reply(ok, error[:500], data), NETSIM_ID, 0), key, asker))
 
         payload = query.payload.to_bytes() if query.payload is not None else b""
         if self.opener is not None:
             try:
-                payload, _ = self.opener.open(payload)
+                payload, asker = self.opener.open(payload, key)
             except auth.AuthError as exc:
                 self._refuse("control", self.keys.control, f"auth-{exc.reason}", str(exc))
                 return reply(False, f"not authenticated ({exc.reason}): control requests need the swarm's key")
@@ -443,6 +460,7 @@ class NetsimServer:
             return reply(False, f"bad request: {exc}")
         if not isinstance(req.args, dict):
             return reply(False, "args must be a map")
+        nonce = req.args.get("nonce") if isinstance(req.args.get("nonce"), str) else None
         try:
             self._control_op(req, reply)
         except Exception as exc:  # a bad request must never take netsim down
@@ -592,7 +610,7 @@ class NetsimServer:
             for a in restarted:
                 rec.event(t, f"restart agent {a}")
         for a in self.ids:
-            self._put(self.pub_truth[a], Truth(k, t, truth[a]))
+            self._put(self.pub_truth[a], Truth(k, t, truth[a]), to=a)  # a MAC, not a signature per agent a tick
             if frames[a] is None:  # a recorded world without a frame for it this tick
                 frames[a] = Sensors(k, t, None, [])
             elif a in self.alive and a not in after:
@@ -614,7 +632,9 @@ class NetsimServer:
 
     def _end_tick(self, k: int) -> None:
         if k % max(1, int(round(1.0 / self.sc.clock.dt))) == 0:
-            rows = self.sim.link_table()
+            # Pairs out of radio range are not links: left out (at 256 agents they are 9 pairs
+            # in 10, and building, sealing, recording and drawing them was most of a tick).
+            rows = self.sim.link_table(in_reach=True)[:MAX_LINK_ROWS]
             self._put(self.pub_links, Links(k, [LinkMsg(**row) for row in rows]))
             if self.recorder is not None:
                 self.recorder.links(rows)

@@ -15,10 +15,12 @@ usage: python attacker.py ATTACK ENDPOINT SWARM FIRST_TICK LAST_TICK [ARGS...]
                radio and sensor keys (finding 5)
     sensors    outsider: agent 1's sealed sensor frames replayed to agent 4 (finding 2)
     stats      outsider: the agents' captured sealed stats answers, and junk, to every stats query (finding 3)
-    stop KEYS  member: one stop clock sealed as netsim (finding 9)
+    stop KEYS  member (agent 2's own keys only): one stop clock claiming to be netsim's (finding 9)
     lockout KEYS
-               member: captured frames sealed again as netsim and as agent 2 with counters far
-               ahead (finding 8)
+               member (agent 2's own keys only): captured frames of netsim's sealed again claiming
+               to be netsim's, and agent 2's own with counters far ahead (findings 8, 10)
+    forge KEYS member (agent 2's own keys only): frames claiming to be agent 3's on its radio key,
+               netsim's on agent 1's sensor key, and deliveries to agent 1 (finding 10)
 """
 
 import json
@@ -121,24 +123,44 @@ def launcher(at: Attacker, first: int, last: int) -> dict:
     return {"rounds": rounds}
 
 
-def reseal(ring, sender: int, sealed: bytes, counter: int) -> bytes:
-    """A captured sealed frame sealed again by a member holding the key, as `sender`, with `counter`."""
-    from swarmloc.wire.auth import TRAILER, Sealer
+MEMBER = 2  # the member whose keys (agent-2.secret and members.json, nothing else) the attacker holds
 
-    sealer = Sealer(ring, sender)
-    sealer.counter = counter - 1
-    frame = sealer.seal(sealed[:-TRAILER.size])
-    assert TRAILER.unpack(frame[-TRAILER.size:])[1] == counter
-    return frame
+
+def member_ring(keys: str):
+    """Agent 2's own keys: what a captured or faulty agent 2 holds (never the hub's)."""
+    from swarmloc.wire.auth import Keyring
+
+    ring = Keyring.load(Path(keys), f"agent-{MEMBER}")
+    assert ring.master is None and ring.mac_key("agent-1") is None and ring.signer("netsim") is None
+    return ring
+
+
+def reseal(ring, sealed: bytes, key: str, to: int, counter: int | None = None, claim: int | None = None) -> bytes:
+    """A captured sealed frame sealed again with the member's own keys for `to` on `key` (with
+    `counter` if given), its trailer then claiming sender `claim`: the best a member can do to
+    speak as another (per-member identity makes the tag or signature the member's, not the
+    claimed sender's)."""
+    from swarmloc.wire.auth import HEADER, Sealer, trailer_size
+
+    sealer = Sealer(ring, MEMBER)
+    if counter is not None:
+        sealer.counter = counter - 1
+    data = bytearray(sealer.seal(sealed[:-trailer_size(sealed)], key, to))
+    if claim is not None:
+        at = len(data) - trailer_size(bytes(data))
+        data[at:at + 4] = claim.to_bytes(4, "little")
+    assert HEADER.unpack_from(data, len(data) - trailer_size(bytes(data)))[2] == (counter or sealer.counter)
+    return bytes(data)
 
 
 def lockout(at: Attacker, first: int, last: int, keys: str) -> dict:
     """Finding 8, one member's key: a frame sealed as netsim with a counter far ahead (on the
     clock and each agent's sensor key), and one sealed as agent 2 (on its radio key), used to
-    lock their sender out for good. Each round sends both, once far ahead of every clock."""
-    from swarmloc.wire.auth import Keyring
+    lock their sender out for good. Each round sends both, once far ahead of every clock. With
+    agent 2's own keys only, the ones claiming netsim carry agent 2's signature (finding 10)."""
+    from swarmloc.wire.auth import BROADCAST
 
-    ring = Keyring.load(Path(keys))
+    ring = member_ring(keys)
     k = at.keys
     rounds = 0
     at.wait_tick(first)
@@ -146,9 +168,11 @@ def lockout(at: Attacker, first: int, last: int, keys: str) -> dict:
     while at.tick < last:
         snap = at.snapshot()
         if k.clock in snap and k.radio_tx(2) in snap and k.sensors(1) in snap:
-            at.put(k.clock, reseal(ring, 0, snap[k.clock], far + rounds), "clock/auth-from-the-future")
-            at.put(k.sensors(1), reseal(ring, 0, snap[k.sensors(1)], far + rounds), "1/auth-from-the-future")
-            at.put(k.radio_tx(2), reseal(ring, 2, snap[k.radio_tx(2)], far + rounds), "tx/auth-from-the-future")
+            at.put(k.clock, reseal(ring, snap[k.clock], k.clock, BROADCAST, far + rounds, 0), "clock/auth-bad-signature")
+            at.put(k.sensors(1), reseal(ring, snap[k.sensors(1)], k.sensors(1), 1, far + rounds, 0),
+                   "1/auth-bad-signature")
+            at.put(k.radio_tx(2), reseal(ring, snap[k.radio_tx(2)], k.radio_tx(2), 0, far + rounds),
+                   "tx/auth-from-the-future")
             rounds += 1
         time.sleep(0.05)
     return {"rounds": rounds}
@@ -177,13 +201,49 @@ def replay_flood(at: Attacker, first: int, last: int, frames: str = "20000") -> 
 
 
 def stop(at: Attacker, first: int, last: int, keys: str) -> dict:
-    """Finding 9, one member's key: one `stop` on the clock sealed as netsim, at tick FIRST."""
-    from swarmloc.wire.auth import Keyring, Sealer
+    """Finding 9, one member's key: one `stop` on the clock claiming to be netsim's, at tick FIRST.
+    Agent 2's own keys cannot sign as netsim: its signature under a trailer that says netsim."""
+    from swarmloc.wire.auth import BROADCAST
 
-    ring = Keyring.load(Path(keys))
+    ring = member_ring(keys)
     at.wait_tick(first)
-    at.put(at.keys.clock, Sealer(ring, 0).seal(wire.encode(Clock(at.tick, 0.0, "stop", 0.5), 0, 10**9)), "clock/stop")
+    stop_frame = wire.encode(Clock(at.tick, 0.0, "stop", 0.5), 0, 10**9)
+    at.put(at.keys.clock, reseal(ring, stop_frame + bytes(83 - 2) + b"E2", at.keys.clock, BROADCAST, claim=0),
+           "clock/auth-bad-signature")
     return {"at_tick": at.tick}
+
+
+def forge(at: Attacker, first: int, last: int, keys: str) -> dict:
+    """Finding 10, one member's key: agent 2 speaks as others. Each round: agent 3's last radio
+    frame sealed again with agent 2's MAC key under a trailer claiming agent 3 (to netsim, on
+    radio/tx/3), netsim's last sensor frame for agent 1 claiming netsim (signed by agent 2), a
+    delivery to agent 1 under the next numbers tagged with agent 2's own key (the lock-out of
+    the issue: a number far ahead), and agent 2's own radio frame replayed on agent 3's key."""
+    from swarmloc.wire.auth import TAG_BYTES
+
+    ring = member_ring(keys)
+    k = at.keys
+    rounds = 0
+    at.wait_tick(first)
+    import hmac
+
+    from swarmloc.wire import auth
+    while at.tick < last:
+        snap = at.snapshot()
+        if k.radio_tx(3) in snap and k.sensors(1) in snap and k.radio_rx(1) in at.attachments and k.radio_tx(2) in snap:
+            at.put(k.radio_tx(3), reseal(ring, snap[k.radio_tx(3)], k.radio_tx(3), 0, claim=3), "tx/auth-bad-tag")
+            at.put(k.sensors(1), reseal(ring, snap[k.sensors(1)], k.sensors(1), 1, claim=0), "1/auth-bad-signature")
+            with at.lock:
+                att = at.attachments[k.radio_rx(1)]
+            data = snap[k.radio_tx(2)]
+            for ahead in (1, 32_000):
+                head = wire.encode_delivery(wire.decode_delivery(att[:-TAG_BYTES])[0] + ahead, None)
+                tag = hmac.digest(ring.mac, auth._delivery_msg(ring, 1, head, data), "sha256")[:TAG_BYTES]
+                at.put(k.radio_rx(1), data, "1/auth-bad-delivery", head + tag)
+            at.put(k.radio_tx(3), snap[k.radio_tx(2)], "tx/auth-bad-tag")  # its own frame on another's key
+            rounds += 1
+        time.sleep(0.05)
+    return {"rounds": rounds}
 
 
 def stats(at: Attacker, first: int, last: int) -> dict:
@@ -254,7 +314,7 @@ def trailer_flood(at: Attacker, first: int, last: int, frames: str = "50000", si
             if n % 2:
                 at.put(sensors, body + trailer, "2/sensors/auth-bad-tag", flood=True)
             else:
-                at.put(rx, body + trailer, "2/rx/auth-bad-tag", ahead, flood=True)
+                at.put(rx, body + trailer, "2/rx/auth-bad-delivery", ahead, flood=True)
             n += 1
         time.sleep(0.001)
     rate_sent = n / (time.monotonic() - t0)
@@ -263,7 +323,7 @@ def trailer_flood(at: Attacker, first: int, last: int, frames: str = "50000", si
 
 
 ATTACKS = {"sensors": sensors, "stats": stats, "stop": stop, "launcher": launcher, "lockout": lockout, "flood": replay_flood,
-           "trailer-flood": trailer_flood}
+           "trailer-flood": trailer_flood, "forge": forge}
 
 
 def member_lies(at: Attacker, first: int, last: int, keys: str, lie: str, size: str = "0", limit: str = "1000000",
@@ -283,9 +343,13 @@ def member_lies(at: Attacker, first: int, last: int, keys: str, lie: str, size: 
     import msgspec
     import numpy as np
 
-    from swarmloc.wire.auth import TAG_BYTES, TRAILER, Keyring, Sealer, delivery_tag
+    from swarmloc.wire.auth import TAG_BYTES, Keyring, Sealer, delivery_tag, trailer_size
     from swarmloc.wire.messages import DclCommit, DclStart
 
+    # Agent LIAR's lies as netsim routes them: sealed as LIAR to netsim, handed over under netsim's
+    # delivery tag. With per-member identity only netsim can tag a delivery (under the receiver's
+    # key), so this attacker stands in for a lying agent whose frames netsim routes: it needs the
+    # hub's file for the tag, which a real liar never has (docs/security.md).
     ring = Keyring.load(Path(keys))
     src, k, size = int(liar), at.keys, float(size)
     sealer = Sealer(ring, src)
@@ -308,7 +372,7 @@ def member_lies(at: Attacker, first: int, last: int, keys: str, lie: str, size: 
             return
         data = s.payload.to_bytes()
         try:
-            env = wire.decode(data[:-TRAILER.size])
+            env = wire.decode(data[:-trailer_size(data)])
         except wire.WireError:
             return
         body = forged(env.body) if env.dst is not None and env.dst != src else None
@@ -317,7 +381,7 @@ def member_lies(at: Attacker, first: int, last: int, keys: str, lie: str, size: 
         with at.lock:
             att = at.attachments.get(k.radio_rx(env.dst))
         n = 0 if att is None else wire.decode_delivery(att[:-TAG_BYTES])[0]
-        frame = sealer.seal(wire.encode(body, src, env.seq, env.dst))
+        frame = sealer.seal(wire.encode(body, src, env.seq, env.dst), k.radio_tx(src), 0)
         attachment = wire.encode_delivery(n + 1, None)
         attachment += delivery_tag(ring, env.dst, attachment, frame)
         at.put(k.radio_rx(env.dst), frame, f"{env.dst}/{type(body).__name__}", attachment)

@@ -140,7 +140,8 @@ class NetsimClient:
         self.wire, self.keys = wire, wire.Keys(swarm)
         # A run seals its frames (docs/security.md): control requests need its key.
         found = lookup(swarm)
-        self.sealer = auth.Sealer(auth.Keyring.load(found["keys"]), auth.operator()) if found and found.get("keys") else None
+        self.sealer = (auth.Sealer(auth.Keyring.load(found["keys"], "operator"), auth.operator())
+                       if found and found.get("keys") else None)
         self.session = zenoh.open(zenoh.Config.from_json5(wire.zenoh_config("client", connect=[endpoint])))
 
     def request(self, op: str, args: dict | None = None, timeout: float = 5.0) -> dict:
@@ -148,7 +149,7 @@ class NetsimClient:
 
         payload = self.wire.encode(Control(op, args or {}), 0, 1)
         if self.sealer is not None:
-            payload = self.sealer.seal(payload)
+            payload = self.sealer.seal(payload, self.keys.control, 0)
         for r in self.session.get(self.keys.control, payload=payload, timeout=timeout):
             if r.ok is not None:
                 body = self.wire.decode(r.ok.payload.to_bytes(), expect=(Reply,)).body

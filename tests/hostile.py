@@ -81,8 +81,8 @@ def main(endpoint, swarm, ids, first, last):
             put(keys.radio_tx(a), b"\xc1", "tx/auth-unauthenticated")
             put(keys.radio_tx(a), OVERSIZE, "tx/oversize")
             put(keys.radio_tx(99), b"\xc1", "tx/unknown-agent")
-            if keys.radio_tx(b) in snap:  # b's frame, relabelled: its envelope still says b
-                put(keys.radio_tx(a), snap[keys.radio_tx(b)][0], "tx/auth-wrong-sender")
+            if keys.radio_tx(b) in snap:  # b's frame on a's key: the key expression is under b's tag
+                put(keys.radio_tx(a), snap[keys.radio_tx(b)][0], "tx/auth-bad-tag")
             if keys.radio_tx(a) in snap:
                 put(keys.radio_tx(a), snap[keys.radio_tx(a)][0], "tx/auth-replayed")
             # The forged commit: a log from b to a holding a commit that moves a by 10 m.

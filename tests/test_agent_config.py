@@ -293,7 +293,7 @@ def test_security_names_a_key_directory_of_this_swarm(tmp_path):
 
     keys = tmp_path / "keys"
     keys.mkdir()
-    Keyring.generate("field").save(keys / "swarm.key")
+    Keyring.generate("field", [3]).save_directory(keys)  # agent 3 reads agent-3.secret and members.json
     base = dict(swarm="field", security={"keys": "keys"})
     cfg = parse_config(changed(**base), tmp_path)
     assert daemon_config(cfg).keyring.swarm == "field" and daemon_config(cfg).tls_dir is None
@@ -303,5 +303,5 @@ def test_security_names_a_key_directory_of_this_swarm(tmp_path):
                for line in problems(changed(**{**base, "security": {"keys": "keys", "tls": True}}), tmp_path))
     assert any(line.startswith("security.tls: needs keys")
                for line in problems(changed(security={"tls": True}), tmp_path))
-    (keys / "swarm.key").chmod(0o640)
+    (keys / "agent-3.secret").chmod(0o640)  # the agent's own keys
     assert any(line.startswith("security.keys: ") and "chmod 600" in line for line in problems(changed(**base), tmp_path))

@@ -54,15 +54,15 @@ def test_the_door_refuses_what_is_oversized_or_not_sealed_before_the_inbox():
     from swarmloc.wire import auth
     from swarmloc.wire.limits import Door
 
-    ring = auth.Keyring.generate("s")
+    ring = auth.Keyring.generate("s", [3])
     box = Inbox()
-    door = Door(box, auth.Opener(ring))
-    sealed = auth.Sealer(ring, 3).seal(b"x" * 100)
+    door = Door(box, auth.Opener(ring, 0))  # netsim's
+    sealed = auth.Sealer(ring.for_member("agent-3"), 3).seal(b"x" * 100, "k", 0)
     forged = b"y" * 60_000 + sealed[-auth.TRAILER.size:]  # a real trailer on other bytes
-    assert door.admit("rx", sealed, lambda d: d)
-    assert not door.admit("rx", forged, lambda d: d)
-    assert not door.admit("rx", b"z" * 100, lambda d: d)
-    assert not door.admit("rx", b"z" * 70_000, lambda d: d)
+    assert door.admit("rx", sealed, lambda d: d, key="k")
+    assert not door.admit("rx", forged, lambda d: d, key="k")
+    assert not door.admit("rx", b"z" * 100, lambda d: d, key="k")
+    assert not door.admit("rx", b"z" * 70_000, lambda d: d, key="k")
     assert door.counts() == {"auth-bad-tag": 1, "auth-unauthenticated": 1, "oversize": 1}
     assert box.frames == 1 and box.get(0) == sealed
     # What the door passed, the loop admits once: its counter is then seen.

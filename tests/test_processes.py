@@ -68,7 +68,8 @@ def test_inject_cut_and_restore_live(cli, tmp_path):
     session = zenoh.open(zenoh.Config.from_json5(wire.zenoh_config("client", connect=[cli.endpoint])))
     try:
         for req in (Control("cut", [1, 2]), Control("cut", {"link": [1, 99]}), Control("explode", {}), b"\x00junk"):
-            payload = ns.sealer.seal(req if isinstance(req, bytes) else wire.encode(req, 0, 1))
+            payload = ns.sealer.seal(req if isinstance(req, bytes) else wire.encode(req, 0, 1),
+                                     wire.Keys(cli.swarm).control, 0)
             (r,) = [r for r in session.get(wire.Keys(cli.swarm).control, payload=payload, timeout=5.0) if r.ok is not None]
             body = wire.decode(r.ok.payload.to_bytes(), expect=(Reply,)).body
             assert body.ok is False and body.error and "authenticated" not in body.error, body.error

@@ -11,7 +11,7 @@ import typer
 
 from agents.cli.common import SwarmOpt
 from agents.control import Failure
-from swarmloc.wire.auth import KEY_FILE
+from swarmloc.wire.auth import DIRECTORY_FILE, KEY_FILE, SECRET_SUFFIX
 
 app = typer.Typer(no_args_is_help=True, help="The swarm's keys: the frame key and the certificates of its "
                   "members (docs/security.md).")
@@ -41,8 +41,10 @@ def _member(name: str) -> str:
 
 @app.command("new")
 def keys_new(directory: Path = KeyDir, swarm: str = SwarmOpt):
-    """Create a swarm's key directory (mode 0700): the frame key (swarm.key) and the swarm's
-    certificate authority (ca.pem, ca.key) that `keys add` signs members' certificates with."""
+    """Create a swarm's key directory (mode 0700): the hub's master secret (swarm.key), the
+    directory of members' public keys (members.json), netsim's and the operator's own keys
+    (netsim.secret, operator.secret) and the swarm's certificate authority (ca.pem, ca.key) that
+    `keys add` signs members' certificates with."""
     from agents import tls
     from swarmloc.wire.auth import Keyring
 
@@ -51,12 +53,12 @@ def keys_new(directory: Path = KeyDir, swarm: str = SwarmOpt):
     try:
         directory.mkdir(mode=0o700, parents=True, exist_ok=True)
         ring = Keyring.generate(swarm)
-        ring.save(directory / KEY_FILE)
+        ring.save_directory(directory)
         tls.new_ca(directory, swarm)
     except OSError as exc:
         raise Failure(f"cannot write {directory}: {exc.strerror or exc}") from None
-    typer.echo(f"{directory}: swarm {swarm}; frame key {ring.current} ({_fingerprint(ring.keys[ring.current])}) in "
-               f"{KEY_FILE}; certificate authority ca.pem, ca.key (keep ca.key here, give members ca.pem)")
+    typer.echo(f"{directory}: swarm {swarm}; hub key in {KEY_FILE} (keep it here and on netsim); members netsim, "
+               f"operator in {DIRECTORY_FILE}; certificate authority ca.pem, ca.key (keep ca.key here, give members ca.pem)")
 
 
 @app.command("add")
@@ -64,11 +66,15 @@ def keys_add(directory: Path = KeyDir,
              name: str = typer.Argument(..., metavar="NAME", help="an agent id (3 or agent-3), netsim, operator or router"),
              host: Optional[list[str]] = typer.Option(None, "--host", help="an address or DNS name the member "
                                                       "listens on, put in its certificate (repeatable)")):
-    """Issue a member's certificate (NAME.pem, NAME.key, signed by the swarm's CA) for Zenoh TLS."""
+    """A member's own frame keys (NAME.secret; a revoked member comes back under new ones) and its
+    certificate (NAME.pem, NAME.key, signed by the swarm's CA) for Zenoh TLS."""
     from agents import tls
 
-    load_keyring(directory)
+    ring = load_keyring(directory)
     member = _member(name)
+    if member != "router":  # the router seals no frames
+        ring.add(member)
+        ring.save_directory(directory, [member])
     try:
         cert, key = tls.issue(directory, member, host or [])
     except (ValueError, FileNotFoundError) as exc:
@@ -77,7 +83,8 @@ def keys_add(directory: Path = KeyDir,
     if member in revoked:
         revoked.remove(member)
         (directory / "revoked.json").write_text(json.dumps(sorted(revoked)))
-    typer.echo(f"{cert}, {key}: give the member these, ca.pem and {KEY_FILE}")
+    secret = "" if member == "router" else f", {directory / (member + SECRET_SUFFIX)}"
+    typer.echo(f"{cert}, {key}{secret}: give the member these, ca.pem and {DIRECTORY_FILE}")
 
 
 def revoked_members(directory: Path) -> set[str]:
@@ -88,28 +95,29 @@ def revoked_members(directory: Path) -> set[str]:
 @app.command("revoke")
 def keys_revoke(directory: Path = KeyDir, name: str = typer.Argument(..., metavar="NAME", help="an agent id, netsim, operator or router")):
     """Revoke a member: its certificate is deleted and listed as revoked (access control grants it
-    nothing), and the frame key is rotated, so what it holds opens nothing new."""
+    nothing), and its frame keys are listed as revoked in members.json: every frame it seals is
+    refused by whoever holds the new members.json. Nobody else's keys change."""
     member = _member(name)
     ring = load_keyring(directory)
     for suffix in (".pem", ".key"):
         (directory / f"{member}{suffix}").unlink(missing_ok=True)
     revoked = revoked_members(directory) | {member}
     (directory / "revoked.json").write_text(json.dumps(sorted(revoked)))
-    old, kid = ring.current, ring.rotate()
-    ring.save(directory / KEY_FILE)
-    typer.echo(f"{member} revoked; frame key {old} dropped, key {kid} ({_fingerprint(ring.keys[kid])}) current: copy "
-               f"{KEY_FILE} to every other member and restart it")
+    ring.revoke(member)
+    ring.save_directory(directory, [])
+    typer.echo(f"{member} revoked: its keys open nothing more where the new {DIRECTORY_FILE} is (netsim reads it from "
+               f"{KEY_FILE}); copy {DIRECTORY_FILE} to the other members; their own keys are unchanged")
 
 
 @app.command("rotate")
 def keys_rotate(directory: Path = KeyDir):
-    """Replace the frame key with a new one (a copy of swarm.key was lost): frames sealed with the old
-    key are refused from then on, so every member needs the new file."""
+    """Replace the hub's master secret (a copy of swarm.key was lost): every member's keys change,
+    so every member needs its new NAME.secret and members.json."""
     ring = load_keyring(directory)
-    old, kid = ring.current, ring.rotate()
-    ring.save(directory / KEY_FILE)
-    typer.echo(f"{directory / KEY_FILE}: key {old} dropped, key {kid} ({_fingerprint(ring.keys[kid])}) current; copy "
-               "it to every member and restart it")
+    ring.rotate()
+    ring.save_directory(directory)
+    typer.echo(f"{directory / KEY_FILE}: new hub key; every member's keys replaced: copy each its NAME{SECRET_SUFFIX} "
+               f"and {DIRECTORY_FILE} and restart it")
 
 
 @app.command("show")
@@ -120,8 +128,9 @@ def keys_show(directory: Path = KeyDir):
 
     ring = load_keyring(directory)
     typer.echo(f"{directory}: swarm {ring.swarm}")
-    for kid, key in sorted(ring.keys.items()):
-        typer.echo(f"  frame key {kid}  sha256 {_fingerprint(key)}" + ("  (current)" if kid == ring.current else ""))
+    for name, epoch in sorted(ring.members.items()):
+        typer.echo(f"  {name:<16} keys generation {epoch}  public sha256 {ring.fingerprint(name)}"
+                   + ("  (revoked)" if name in ring.revoked else ""))
     for pem in sorted(directory.glob("*.pem")):
         cert = x509.load_pem_x509_certificate(pem.read_bytes())
         cn = cert.subject.get_attributes_for_oid(x509.NameOID.COMMON_NAME)[0].value

@@ -14,7 +14,14 @@ its own state alone:
   S - Y^T Y is positive semi-definite, and then P - Pxz S^-1 Pxz^T is too: a frame that claims
   more (gains x100, Y inflated) would shrink a covariance below zero;
 - a gain the receiver can form from its own rows matches the one it is handed;
-- information matrices symmetric positive semi-definite, covariances symmetric positive definite.
+- information matrices symmetric positive semi-definite, covariances symmetric positive definite;
+- a posterior handed to us for our own prior (RDL's commit) is one update of it (`reduction`:
+  P_prior - P_post positive semi-definite, of rank at most dim z) and moved within the bound
+  (`shift`).
+
+`step_bound` is the derived bound on how far one update that passes can move a block of the
+receiver's state (docs/security.md, "A member's damage (finding 7)"; benchmarks/member_damage.py
+measures it and the damage of whole runs of lies).
 
 Each returns the reason a frame is refused ("implausible-..."), or None; the caller counts the
 reason in its node's drops and leaves its state untouched. Pure functions, no I/O: the
@@ -148,3 +155,36 @@ def shift(dx: np.ndarray, P: np.ndarray, limits: Limits = LIMITS) -> str | None:
     except np.linalg.LinAlgError:
         return "implausible-covariance"
     return "implausible-shift" if d2 > limits.nis_limit(len(dx)) else None
+
+
+def reduction(P_prior: np.ndarray, P_post: np.ndarray, dof: int, limits: Limits = LIMITS) -> str | None:
+    """A posterior handed to us for our own prior (RDL's commit): one update of a dof-dimensional
+    measurement removes P_prior - P_post = Pxz S^-1 Pxz^T, positive semi-definite and of rank at
+    most dof, and leaves P_post positive definite. Whitened by the prior's Cholesky factor L, the
+    reduction's eigenvalues lie in [0, 1) and all but the dof largest are zero (to rounding). A
+    posterior that claims more (a smaller covariance than any one measurement can give, or
+    information in more directions than it measures) is refused."""
+    if not finite(P_post) or not positive_definite(P_post, limits):
+        return "implausible-covariance"
+    try:
+        L = np.linalg.cholesky(P_prior)
+    except np.linalg.LinAlgError:
+        return "implausible-covariance"
+    W = np.linalg.solve(L, np.linalg.solve(L, P_prior - P_post).T)  # L^-1 (P_prior - P_post) L^-T
+    W = 0.5 * (W + W.T)
+    ev = np.linalg.eigvalsh(W)
+    tol = 1e3 * limits.psd_tol
+    if ev[0] < -tol or ev[-1] >= 1.0 or (len(ev) > dof and ev[-dof - 1] > tol):
+        return "implausible-information"
+    return None
+
+
+def step_bound(S: np.ndarray, dof: int, P_block: np.ndarray | None = None, limits: Limits = LIMITS) -> float:
+    """The derived bound on how far one update that passes `innovation` (and `shift`) can move a
+    block of the receiver's state, in its own units (metres, for a position block): the update
+    moves the state by dx = K nu, and for a Kalman update of a consistent joint
+    dx^T P^-1 dx <= nu^T S^-1 nu <= nis_limit(dof) (Pxz^T P^-1 Pxz <= Pzz <= S), so
+    |dx_block| <= sqrt(nis_limit * lambda_max(P_block)). For a fusion checked with `shift` against
+    S (EKF-CI), P_block is S itself. docs/security.md, "A member's damage (finding 7)"."""
+    B = S if P_block is None else P_block
+    return float(np.sqrt(limits.nis_limit(dof) * np.linalg.eigvalsh(B).max()))

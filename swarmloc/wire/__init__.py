@@ -28,8 +28,7 @@ from swarmloc.wire.schema import (
     MAX_WIRE_BYTES,
     REGISTRY,
     SCHEMA_VERSION,
-    SEAL_MAGIC,
-    SEAL_TRAILER,
+    SEAL_TRAILERS,
     Array,
     FrameTooLarge,
     Message,
@@ -150,9 +149,10 @@ def decode(data: bytes, expect: tuple[type, ...] | None = None, body: bool = Tru
         # A sealed frame (swarmloc/wire/auth.py) read by someone without the key, or not checking
         # it (a monitor): the envelope before its trailer. Receivers that must believe a
         # frame open it first, which checks the trailer.
-        if "trailing characters" not in str(exc) or size <= SEAL_TRAILER or data[-2:] != SEAL_MAGIC:
+        trailer = SEAL_TRAILERS.get(data[-2:], 0)
+        if "trailing characters" not in str(exc) or not trailer or size <= trailer:
             raise WireError(f"not MessagePack: {_text(exc)}") from None
-        size -= SEAL_TRAILER
+        size -= trailer
         env = _envelope(data[:size])
     except Exception as exc:  # a parser limit (nesting) of any kind
         raise WireError(f"not MessagePack: {type(exc).__name__}") from None

@@ -121,7 +121,7 @@ class Door:
     refusals that cost least, cheapest first, so a flood of frames nobody sealed costs a MAC at
     most and never pushes a genuine frame out (issue 26, finding 5). In order: the size limit of
     the key it came on (before the payload is copied out of Zenoh's buffer), then the seal's
-    tag (`auth.Opener.verify`, stateless), then the sender's share of the inbox. What is left to
+    tag (`auth.Opener.verify`: receiver, key, MAC or signature; stateless), then the sender's share of the inbox. What is left to
     the loop: the counter window (`auth.Opener.admit`), the rate limit, decoding.
 
     Refusals are counted by (kind, reason) in `refused`; the reasons are those the loop would
@@ -136,10 +136,13 @@ class Door:
         with self._lock:
             self.refused[(kind, reason)] += 1
 
-    def admit(self, kind: str, payload, make_item, rule=None, limit: int = MAX_WIRE_BYTES) -> bool:
+    def admit(self, kind: str, payload, make_item, rule=None, limit: int = MAX_WIRE_BYTES, key: str = "",
+              verify=None) -> bool:
         """Queue make_item(data) for a payload (Zenoh ZBytes, or bytes) of at most `limit` bytes
-        whose seal is right; False, counted, otherwise. `rule()`: the driver's own cheap check
-        for this key (a reason to refuse, or None), after the size and before the MAC."""
+        whose seal for this receiver on key expression `key` is right; False, counted,
+        otherwise. `rule()`: the driver's own cheap check for this key (a reason to refuse, or
+        None), after the size and before the MAC. `verify(data)`: the seal's check instead of
+        the opener's (an agent's deliveries: netsim's tag), the sender or AuthError."""
         if len(payload) > limit:
             self.refuse(kind, "oversize")
             return False
@@ -148,9 +151,9 @@ class Door:
             return False
         data = payload if isinstance(payload, bytes) else payload.to_bytes()
         sender = None
-        if self.opener is not None:
+        if verify is not None or self.opener is not None:
             try:
-                sender = self.opener.verify(data)
+                sender = verify(data) if verify is not None else self.opener.verify(data, key)
             except auth.AuthError as exc:
                 self.refuse(kind, f"auth-{exc.reason}")
                 return False

@@ -39,7 +39,7 @@ MAX_WIRE_BYTES = 64 * 1024
 MAX_ARRAY_ELEMENTS = 4096  # an array's default limit on each dimension and on its element count
 MAX_COLLECTION = 1024
 MAX_ID = 2**31 - 1  # agent ids fit a signed 32-bit integer
-SEAL_TRAILER, SEAL_MAGIC = 31, b"S1"  # swarmloc.wire.auth's trailer: its size and last two bytes
+SEAL_TRAILERS = {b"S2": 35, b"E2": 83}  # swarmloc.wire.auth's trailers by their last two bytes: MAC, signature
 MAX_MAGNITUDE = 1e12
 """Largest absolute value of any float on the wire (scalar or array element), unless its field
 says less: far beyond any position (m), time (s) or variance the estimators meet, and far

@@ -32,7 +32,7 @@ import numpy as np
 from swarmloc.estimators.ctl import majorization as ctl
 from swarmloc.estimators.il import IndependentNode
 from swarmloc.estimators.ukf.ccl import CentralizedUKF
-from swarmloc.filters import fusion, kalman
+from swarmloc.filters import fusion, kalman, plausibility
 from swarmloc.node import Estimate, Node, NodeSpec, Send, Timer, odometry_of
 from swarmloc.wire.messages import CslShare, CtlFix, Sensors
 
@@ -206,6 +206,7 @@ class JointCslCtl(CentralizedUKF):
         for o, x in fixes.items():
             x0[node_of[("target", o)]] = x
         try:
+            implausible = []
             for a, o, z, s in used:  # NIS of the ranges to targets already in the state (linearised)
                 if o in self.targets:
                     ia, io = node_of[a], node_of[("target", o)]
@@ -214,7 +215,20 @@ class JointCslCtl(CentralizedUKF):
                     H = np.zeros(p_idx.size)
                     H[ia * p:(ia + 1) * p], H[io * p:(io + 1) * p] = u, -u
                     nu = np.array([z - np.linalg.norm(diff)])
+                    # A member's range to a target past the innovation bound (issue 26, finding
+                    # 7) takes no part in the re-estimate.
+                    reason = plausibility.innovation(nu, np.array([[H @ Ppp @ H + s**2]]))
+                    if reason is not None:
+                        implausible.append((a, o, z, s))
+                        self.refused[reason] = self.refused.get(reason, 0) + 1
+                        if self.on_refused is not None:
+                            self.on_refused(reason, f"range of {a} to target {o}")
+                        continue
                     self.nis.setdefault(a, []).append((fusion.nis(nu, np.array([[H @ Ppp @ H + s**2]])), 1))
+            if implausible:
+                used = [r for r in used if r not in implausible]
+                if not used:
+                    return
             edges = ctl.Edges(np.array([node_of[a] for a, *_ in used]), np.array([node_of[("target", o)] for _, o, *_ in used]),
                               np.array([r[2] for r in used]), np.array([r[3] for r in used]))
             res = ctl.estimate(prior, Ppp, edges, x0, has_prior=np.arange(K) < len(keys), noise=self.ut_noise,
@@ -338,8 +352,10 @@ class CslCtlNode(Node):
 
     def _replica(self, x0: dict, P0) -> JointCslCtl:
         s = self.settings
-        return self.joint(x0, P0, self.model, s["spread"], tol=s["tol"], max_iter=s["max_iter"], ut_noise=s["ut_noise"],
-                          target_process_noise=s["target_process_noise"], min_ranges=s["min_ranges"])
+        replica = self.joint(x0, P0, self.model, s["spread"], tol=s["tol"], max_iter=s["max_iter"], ut_noise=s["ut_noise"],
+                             target_process_noise=s["target_process_noise"], min_ranges=s["min_ranges"])
+        replica.on_refused = self.drop  # a share's implausible measurement (issue 26, finding 7), counted here
+        return replica
 
     @classmethod
     def spec(cls, scenario, aid, settings=None) -> NodeSpec:

@@ -137,11 +137,15 @@ class CiNode(EkfNode):
         dz = p_i - self.filter.state.position
         # One member's lie (issue 26, finding 7): an implied position past the plausibility
         # bound against our own, or a fusion that leaves no covariance, touches nothing.
-        if (why := plausibility.innovation(dz, self.filter.position_cov() + P_i)) is not None:
+        S = self.filter.position_cov() + P_i
+        if (why := plausibility.innovation(dz, S)) is not None:
             return self.drop(why, f"{src}'s beacon implies a position {np.linalg.norm(dz):.3g} m off")
         try:
             dx, P, omega = self.fuse(dz, P_i)
-            if (why := plausibility.covariance(P)) is not None:
+            # Nor a fusion that moves our position further than the same bound in S's metric
+            # (small omega can take nearly all of the innovation): at most
+            # plausibility.step_bound(S, 3) metres per beacon.
+            if (why := plausibility.covariance(P) or plausibility.shift(H_POSITION @ dx, S)) is not None:
                 return self.drop(why, f"fusing {src}'s beacon")
             self.filter.correct(dx, P)
         except (np.linalg.LinAlgError, ValueError) as exc:

@@ -46,6 +46,7 @@ import numpy as np
 
 from swarmloc.estimators.nbp import mixtures as nbp
 from swarmloc.estimators.nbp.schedule import RELAX_TAG, THRESHOLDS, Schedule
+from swarmloc.filters import plausibility
 from swarmloc.node import Estimate, Node, NodeSpec, Send, Timer, odometry_of
 from swarmloc.wire.messages import NbpBelief, Sensors
 
@@ -155,9 +156,11 @@ class DnbpNode(Node):
         if not (np.isfinite(msg.samples).all() and np.isfinite(msg.bandwidth).all()
                 and np.allclose(msg.bandwidth, msg.bandwidth.T) and np.linalg.eigvalsh(msg.bandwidth).min() >= 0):
             return self.drop("invalid", f"belief from {src}: samples or kernel not a finite covariance")
+        z, sigma = self.ranges[src]
+        if (why := self._implausible(msg, z, sigma)) is not None:
+            return self.drop(why, f"belief from {src}")
         t0 = time.perf_counter()
         new = self.schedule.hear(src, msg.normal)
-        z, sigma = self.ranges[src]
         h = self.ring_scale * ring_thickness(msg.bandwidth, z, sigma, self.M) if self.ring_scale > 0 else None
         try:
             ring = nbp.range_message(msg.samples.astype(float), msg.weights.astype(float), z, sigma, self.rng, self.M,
@@ -188,6 +191,25 @@ class DnbpNode(Node):
         return [Timer(self.quiet, RELAX_TAG)] if self.schedule.threshold > 1 else []
 
     # ------------------------------------------------------------------ helpers
+
+    def _implausible(self, msg, z: float, sigma: float) -> str | None:
+        """One member's lie (issue 26, finding 7): the range we measured to the sender against
+        the distance between its belief's mean and our prediction's, linearised along the line
+        between them, S = u^T (P_ours + P_its) u + sigma^2, within plausibility's bound. A
+        belief that puts the sender where our range cannot reach is refused before it becomes a
+        ring; one within the bound moves the ring's centre by at most step_bound(S, 1) metres."""
+        w = msg.weights.astype(float)
+        w = w / w.sum()
+        X = msg.samples.astype(float)
+        m_s = w @ X
+        dm = X - m_s
+        P_s = (w[:, None] * dm).T @ dm + msg.bandwidth
+        m_p, P_p = self.prior.mean(), self.prior.cov()
+        diff = m_s - m_p
+        dist = float(np.linalg.norm(diff))
+        u = diff / dist if dist > 1e-9 else np.eye(self.p)[0]
+        S = float(u @ (P_p + P_s) @ u) + sigma**2
+        return plausibility.innovation(np.array([z - dist]), np.array([[S]]))
 
     def _form(self, late: bool = False) -> None:
         """The belief: this slice's prediction times the messages held (mixture importance

@@ -117,4 +117,5 @@ def pair_update(ut: kalman.UnscentedTransform, h, angles, x: np.ndarray, P: np.n
     Pz = Pzz + R
     nu = innovation(z, z_bar, angles)
     x, P, _ = kalman.update(x, P, L @ Y, Pz, nu)
-    return {"nis": float(nu @ np.linalg.solve(Pz, nu)), "x": x, "P": P}
+    # nu, Pz and Y (L Y = Pxz) for plausibility.update (issue 26, finding 7).
+    return {"nis": float(nu @ np.linalg.solve(Pz, nu)), "x": x, "P": P, "nu": nu, "Pz": Pz, "Y": Y}

@@ -27,7 +27,7 @@ import numpy as np
 from swarmloc.estimators.neighbours import NeighbourTable, RetryBudget
 from swarmloc.estimators.rdl import factors as fx
 from swarmloc.estimators.ukf.ccl import Observations
-from swarmloc.filters import kalman
+from swarmloc.filters import kalman, plausibility
 from swarmloc.node import LANDMARK, Estimate, Node, NodeSpec, Send, Timer, keyed_measurements, odometry_of
 from swarmloc.wire.messages import RDL_GATED, RDL_OK, RDL_REFUSED, Beacon, RdlCommit, RdlMeas, RdlRequest, Sensors
 
@@ -251,6 +251,14 @@ class RdlNode(Node):
             self.drop("not-positive-definite", str(key))
             self._resolve(key, "dropped")
             return self._refuse(a, msg)
+        # One member's lie (issue 26, finding 7): a's measurement or state past the innovation
+        # bound, or claiming more information than the innovation allows, touches nothing. Before
+        # the gate, which stands open after a streak and would take it.
+        reason = plausibility.update(up["nu"], up["Pz"], up["Y"])
+        if reason is not None:
+            self.drop(reason, f"request {key} from {a}")
+            self._resolve(key, "dropped")
+            return self._refuse(a, msg)
         if not self.gate.admit(tuple(key[:3]), up["nis"], len(msg.z)):
             self._resolve(key, "gated")
             return self._refuse(a, msg, RDL_GATED)
@@ -281,6 +289,13 @@ class RdlNode(Node):
             self._resolve(key, "dropped")
         elif not (fx.is_covariance(msg.P) and np.isfinite(msg.x).all() and np.isfinite(msg.cross).all()):
             self.drop("invalid", "commit")
+            self._resolve(key, "dropped")
+        elif (why := plausibility.reduction(self.P, msg.P, self.obs.dim(key[1]))
+              or plausibility.shift(msg.x - self.x, self.P)) is not None:
+            # One member's lie (issue 26, finding 7): b's answer must be one update of our own
+            # prior (the P we sent is still ours: we waited): its covariance reduced by at most
+            # a rank-dim(z) part, its mean moved within the innovation bound in our own metric.
+            self.drop(why, f"commit {msg.key} from {b}")
             self._resolve(key, "dropped")
         else:
             try:

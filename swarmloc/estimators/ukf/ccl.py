@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from swarmloc.filters import fusion, kalman
+from swarmloc.filters import fusion, kalman, plausibility
 from swarmloc.models.measurements import RangeBearing, StateLayout, wrap_angle
 from swarmloc.models.motion import MOTION_MODELS, PlanarPoseBias, Range, reported_dim
 from swarmloc.node import LANDMARK, RANGE, RANGE_BEARING, Estimate, keyed_measurements, odometry_of
@@ -92,6 +92,10 @@ class CentralizedUKF:
         self.k = -1
         self.nis: dict[int, list[tuple[float, int]]] = {}
         self.gated = 0
+        # Measurements refused as implausible (issue 26, finding 7), and who is told of each:
+        # a replica's node counts them in its drops (CslCtlNode).
+        self.refused: dict[str, int] = {}
+        self.on_refused = None
 
     @classmethod
     def from_scenario(cls, scenario, ids, settings=None):
@@ -155,6 +159,15 @@ class CentralizedUKF:
         h, angles = self.obs.h(key)
         z_bar, Pzz, Y = self.ut.measurement_moments(self.x[idx], L, h, angles)
         nu = self.obs.innovation(z, z_bar, angles)
+        # A member's measurement (in a replica, CSL-CTL: another agent's share; issue 26,
+        # finding 7) past the innovation bound, or claiming more information than its innovation
+        # covariance allows, is refused before the gate, which stands open after a streak.
+        reason = plausibility.update(nu, Pzz + R, Y)
+        if reason is not None:
+            self.refused[reason] = self.refused.get(reason, 0) + 1
+            if self.on_refused is not None:
+                self.on_refused(reason, f"measurement {tuple(key)}")
+            return None
         nis = fusion.nis(nu, Pzz + R)
         if not self.gate.admit(tuple(key[:3]), nis, len(z)):
             self.gated += 1

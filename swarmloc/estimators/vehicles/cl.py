@@ -53,6 +53,7 @@ from swarmloc.estimators.ekf.common import (
     release_held,
 )
 from swarmloc.estimators.vehicles.filters import JointVehicleEkf, VehicleEkf
+from swarmloc.filters import plausibility
 from swarmloc.models.motion import VEHICLES
 from swarmloc.models.vehicles import MODELS, CircleReference, actuator_std, controller_for
 from swarmloc.node import Idle, Node, NodeSpec, Send, Timer
@@ -455,6 +456,11 @@ class VehicleClient(VehicleNode):
             x, P = check_state(msg.x, msg.P, self.dyn.state_dim)
         except RejectedInput as exc:
             return self.drop(exc.reason, exc.detail)
+        # The centre is a member too (issue 26, finding 7): its marginal for us must not move our
+        # position further than plausibility's bound in our own and its metric together.
+        S = self.P[:3, :3] + P[:3, :3]
+        if (why := plausibility.shift(x[:3] - self.x[:3], 0.5 * (S + S.T))) is not None:
+            return self.drop(why, f"the centre's estimate is {np.linalg.norm(x[:3] - self.x[:3]):.3g} m off ours")
         self.filter.x, self.filter.P = x, P
         self._sync()
         if self.adopted != self.k:
@@ -587,10 +593,10 @@ class VehicleCentre(Node):
             self.joint.predict({a: (u, dt) for a, (u, dt) in inputs.items()})
         for a in list(self.joint.members):
             s = data[a].sensors
-            self.joint.update_attitude(a, s.vehicle.attitude,
-                                       s.vehicle.attitude_std if self.attitude_std is None else self.attitude_std)
+            self._datum(a, "attitude", self.joint.update_attitude, a, s.vehicle.attitude,
+                        s.vehicle.attitude_std if self.attitude_std is None else self.attitude_std)
             if s.gnss is not None:
-                self.joint.update_gps(a, s.gnss.position, s.gnss.std)
+                self._datum(a, "gps", self.joint.update_gps, a, s.gnss.position, s.gnss.std)
         # Newcomers join with their own estimate of the tick (their own sensors applied).
         for a in joined:
             self.joint.add(a, self.models[a], np.asarray(data[a].x, float), np.asarray(data[a].P, float), self.noise[a],
@@ -602,6 +608,19 @@ class VehicleCentre(Node):
             if b not in members:
                 continue
             for r in data[b].sensors.vehicle.seen:
-                if r.target in members:
-                    self.joint.update_relpos(b, r.target, r.z, r.std)
+                if r.target in members and self._datum(b, f"relpos to {r.target}", self.joint.update_relpos, b,
+                                                       r.target, r.z, r.std):
                     self.stats["relpos_updates"] += 1
+
+    def _datum(self, a: int, what: str, update, *args) -> bool:
+        """One member's datum into the joint filter; a lie past plausibility's bound (issue 26,
+        finding 7; JointVehicleEkf refuses it before touching anything) is counted and skipped,
+        the rest of the tick runs."""
+        try:
+            update(*args)
+        except RejectedInput as exc:
+            if not exc.reason.startswith("implausible"):
+                raise
+            self.drop(exc.reason, f"{what} of {a}: {exc.detail}")
+            return False
+        return True

@@ -49,7 +49,8 @@ import math
 
 import numpy as np
 
-from swarmloc.estimators.ekf.common import checked
+from swarmloc.estimators.ekf.common import RejectedInput, checked
+from swarmloc.filters import plausibility
 from swarmloc.models.vehicles import VehicleModel, relpos, relpos_jacobian, wrap_yaw
 
 # Added to the process noise on every predict with dt > 0 (state units squared, per tick).
@@ -161,6 +162,17 @@ def _kalman_update(x: np.ndarray, P: np.ndarray, H: np.ndarray, e: np.ndarray, R
     P_new = A @ P @ A.T + K @ R @ K.T
     P_new = 0.5 * (P_new + P_new.T)
     return x_new, P_new, nis
+
+
+def _plausible(P: np.ndarray, H: np.ndarray, e: np.ndarray, R: np.ndarray, what: str) -> None:
+    """A member's datum (issue 26, finding 7): its innovation within plausibility's bound
+    against S = H P H^T + R, whatever a gate would say; RejectedInput (the filter unchanged)
+    otherwise. With S so formed by the receiver, the update moves the state by at most
+    dx^T P^-1 dx <= nis_limit (plausibility.step_bound)."""
+    S = H @ P @ H.T + R
+    why = plausibility.innovation(e, 0.5 * (S + S.T))
+    if why is not None:
+        raise RejectedInput(why, f"{what}: innovation {np.linalg.norm(e):.3g} past the bound")
 
 
 def _quaternion_slice(model: VehicleModel) -> slice | None:
@@ -292,6 +304,9 @@ class VehicleEkf:
             Pt = _matrix(Pt, target_model.state_dim, f"{target_model.name} target Pt")
             R = R + Ht @ Pt @ Ht.T
         e = z - relpos(self.model, self.x, target_model, xt)
+        # No plausibility bound here: "no CL" ignores the correlation between the two estimates
+        # and its honest innovations pass 100 sigma (oliveros3: 4,860 in 120 s); it is the
+        # paper's baseline, not a defence (issue 26, finding 7: not checked).
         return self._apply(np.asarray(Hb, dtype=float), e, R)
 
 
@@ -315,6 +330,7 @@ class VehicleEkf:
         Hb = np.asarray(Hb, dtype=float)
         R = np.diag(s * s) + Ht @ Pt @ Ht.T
         e = z - relpos(self.model, self.x, target_model, xt)
+        _plausible(self.P, Hb, e, R, "relpos")
 
         def fuse(w: float):
             return _kalman_update(self.x, self.P / w, Hb, e, R / (1.0 - w))
@@ -330,6 +346,12 @@ class VehicleEkf:
         if w >= 1.0:
             return 0.0, 1.0
         x, P, nis = fuse(w)
+        # Nor a fusion that moves the relative position further than the bound in S's metric
+        # (a small w takes nearly all of the innovation).
+        S = Hb @ self.P @ Hb.T + R
+        why = plausibility.shift(Hb @ (x - self.x), 0.5 * (S + S.T))
+        if why is not None:
+            raise RejectedInput(why, "relpos: the fusion moves the estimate past the bound")
         self.x, self.P = self._normalised(x, P)
         return nis, w
 
@@ -455,6 +477,8 @@ class JointVehicleEkf:
         self.x, self.P = x, 0.5 * (P + P.T)
 
     def _apply(self, H, e, R) -> float:
+        # Every datum the centre takes is a member's (issue 26, finding 7).
+        _plausible(self.P, H, e, R, "datum")
         x, P, nis = _kalman_update(self.x, self.P, H, e, R)
         projected = False
         for a in self._ids:
