@@ -3,7 +3,7 @@ of the decentralized estimators against swarm size, in lockstep, with their accu
 ranges used next to dead reckoning (il) and the centralized filter (ukf-ccl) from the same run.
 
 Usage: python benchmarks/bench_scale.py [--sizes 4 8 16 32 64] [--estimators ukf-dcl:3 ukf-dcl:6 ukf-dcl rdl]
-       [--in-process-from N] [--timeout 600] [--budget 2000] [--plot docs/img/ukf_dcl_scale.png] [--json PATH]
+       [--in-process-from N] [--seed 1] [--timeout 600] [--budget 2000] [--plot docs/img/ukf_dcl_scale.png] [--json PATH]
        python benchmarks/bench_scale.py --report PATH.json   (report and plot again from a saved run)
 
 `--estimators`: `ukf-dcl:B` is UKF-DCL with `max_chain: B`, plain `ukf-dcl` is unbounded, any
@@ -211,7 +211,7 @@ def measure_in_process(n: int, name: str, bound: int | None, duration: float, ti
     from swarmloc.experiment.runner import InProcessRunner
     from swarmloc.experiment.scenario import parse
 
-    sc = parse(scenario(n, name, bound, duration), source="bench_scale")
+    sc = parse(scenario(n, name, bound, duration, SEED), source="bench_scale")
     sim = Simulation(sc)
     nodes = make_nodes(name, sc)
     started = time.perf_counter()
@@ -246,7 +246,7 @@ def measure(n: int, name: str, bound: int | None, duration: float, timeout: floa
     tmp.mkdir(parents=True, exist_ok=True)
     run_dir = tmp / f"n{n}-{tag}"
     path = tmp / f"n{n}-{tag}.yaml"
-    path.write_text(yaml.safe_dump(scenario(n, name, bound, duration), sort_keys=False))
+    path.write_text(yaml.safe_dump(scenario(n, name, bound, duration, SEED), sort_keys=False))
     result = {"n": n, "estimator": name, "bound": bound, "duration_s": duration, "agents_per_process": per_process,
               "ticks_planned": int(round(duration / DT)) + 1, "timeout_s": timeout, "finished": False}
     watch = ClockWatch(port, swarm)
@@ -430,6 +430,7 @@ def plot(results: list[dict], path: Path) -> None:
 
 
 def main() -> None:
+    global SEED
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--sizes", type=int, nargs="+", default=[4, 8, 16, 32, 64])
     p.add_argument("--estimators", type=parse_config, nargs="+",
@@ -451,7 +452,9 @@ def main() -> None:
     p.add_argument("--report", type=Path, metavar="JSON",
                    help="run nothing: print the report and draw the plot from a --json file of an earlier run")
     p.add_argument("--code", help="what code is measured, when this checkout has no git metadata (e.g. a git archive)")
+    p.add_argument("--seed", type=int, default=SEED, help="the scenarios' seed (default %(default)s)")
     a = p.parse_args()
+    SEED = a.seed
     if a.report:
         saved = json.loads(a.report.read_text())
         print(markdown(saved["results"], saved["command"], saved["load_start"], saved["load_end"], saved["date"],

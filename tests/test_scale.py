@@ -1,8 +1,11 @@
-"""A 32-agent swarm in real time (the built-in `swarm32`: UKF-DCL with chains bounded to 3
-platforms, dt = 0.5 s; its first 15 s of 30): every
-agent handles every tick's sensor frame in time and none is marked unresponsive."""
+"""Swarms in real time: 32 agents (the built-in `swarm32`: UKF-DCL with chains bounded to 3
+platforms, dt = 0.5 s; its first 15 s of 30) and 256 (`swarm256`: RDL, 32 agents to a process,
+its whole 60 s): every agent handles every tick's sensor frame in time and none is marked
+unresponsive."""
 
 import json
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -36,4 +39,90 @@ def test_32_agents_keep_up_in_real_time_with_bounded_chains(cli, tmp_path):
         assert s["sensor_lag_ms_max"] < 1e3 * sc.clock.dt, (a, s["sensor_lag_ms_max"])
     assert sum(s["measurements_used"] for s in stats.values()) > 0
     with np.load(out / "estimates" / "ukf-dcl.npz") as d:
+        assert not np.isnan(d["mean"]).any(), "an agent missed a tick's estimate"
+
+
+def _tree(pid: int) -> list[int]:
+    """pid and its descendants, from /proc."""
+    children: dict[int, list[int]] = {}
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, ValueError, IndexError):
+                continue
+            children.setdefault(ppid, []).append(int(d.name))
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        todo.extend(children.get(p, []))
+    return out
+
+
+def _rss_mb(pids: list[int]) -> float:
+    kb = 0
+    for p in pids:
+        try:
+            kb += next(int(line.split()[1]) for line in Path(f"/proc/{p}/status").read_text().splitlines()
+                       if line.startswith("VmRSS:"))
+        except (OSError, StopIteration, ValueError):
+            pass
+    return kb / 1024
+
+
+def test_256_agents_keep_up_in_real_time(cli, tmp_path):
+    """Issue 29's `swarm256`: 256 planar agents running RDL, 32 to a process, in real time at dt
+    0.5 s for its full 60 s: every agent handles every tick, none is marked unresponsive, no
+    sensor frame waits a tick, the whole process tree stays within 6 GB and tick 0 comes within
+    20 s of the command. Measured on this machine it needs about 1.7 of its 2 cores
+    (docs/benchmarks.md, "swarm256"): checked first, skipped with the reason when they are not
+    free. The offline UKF-CCL reference is left out (the keep-up property is the test's, and a
+    dense 512-state filter over 121 ticks would take minutes after the run)."""
+    require_spare_cores(1.8, "256 real-time agents at dt 0.5 s need about 1.7 cores of a 2-core machine")
+    sc = S.load("swarm256").with_overrides(references=["il"])
+    assert sc.clock.mode == "realtime" and sc.clock.dt == 0.5 and sc.clock.duration == 60 and len(sc.agent_ids) == 256
+    assert sc.estimator.name == "rdl"
+    path = tmp_path / "swarm256.yaml"
+    path.write_text(sc.to_yaml())
+    out = tmp_path / "run"
+    import zenoh
+
+    from swarmloc import wire
+
+    started = time.monotonic()
+    p = cli.start_run(str(path), out, "--agents-per-process", "32")
+    first: list[float] = []
+    session = sub = None
+    peak_mb = 0.0
+    deadline = started + 300
+    while p.poll() is None and time.monotonic() < deadline:
+        if session is None:
+            try:  # netsim's router: up once it listens
+                session = zenoh.open(zenoh.Config.from_json5(wire.zenoh_config("client", connect=[cli.endpoint])))
+                sub = session.declare_subscriber(wire.Keys(cli.swarm).clock,
+                                                 lambda s: first or first.append(time.monotonic()))
+            except zenoh.ZError:
+                session = None
+        peak_mb = max(peak_mb, _rss_mb(_tree(p.pid)))
+        time.sleep(0.25)
+    if sub is not None:
+        sub.undeclare()
+        session.close()
+    assert p.poll() is not None, "swarm256 did not finish within 300 s"
+    stdout, stderr = p.communicate()
+    assert p.returncode == 0, stderr[-3000:]
+    assert first and first[0] - started < 20.0, f"tick 0 {first[0] - started if first else None} s after the command"
+    assert peak_mb <= 6 * 1024, f"{peak_mb:.0f} MB"
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["unresponsive_agents"] == [] and m["agent_events"] == []
+    stats = m["agent_stats"]
+    assert sorted(map(int, stats)) == sc.agent_ids
+    late = {a: s for a, s in stats.items() if not (s["ticks"] == sc.clock.steps + 1 and s["ticks_skipped"] == 0
+                                                   and s["k"] == sc.clock.steps)}
+    assert not late, f"{len(late)} agents missed ticks, e.g. {next(iter(late.items()))}"
+    lag = {a: s["sensor_lag_ms_max"] for a, s in stats.items() if s["sensor_lag_ms_max"] >= 1e3 * sc.clock.dt}
+    assert not lag, f"{len(lag)} agents' sensor lag reached dt: max {max(lag.values()):.0f} ms"
+    assert sum(s["measurements_used"] for s in stats.values()) > 0
+    with np.load(out / "estimates" / "rdl.npz") as d:
         assert not np.isnan(d["mean"]).any(), "an agent missed a tick's estimate"
