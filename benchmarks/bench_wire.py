@@ -1,17 +1,22 @@
 """Benchmark: this checkout's wire codec against another checkout's, side by side in one run.
 
 Takes every radio frame of an in-process wang2019 UKF-DCL run (the frames the agents send,
-with their real sizes), loads the other checkout's codec (its swarmloc/wire, under another
+with their real sizes), loads the other checkout's codec (its swarmloc/wire, or in a checkout
+from before the wire had its room its swarmloc/wire.py and swarmloc/messages.py, under another
 name) beside this one in the same process, checks that each reads every frame and writes it
 back to the same bytes (that both read the same values is tests/test_wire_corpus.py's), then
 times both frame by frame, alternating (A, B, A, B ...: a busy machine slows both alike):
-`wire.decode` of the frame; `wire.encode` of its decoded message (what a relay does); the
-message built by its type's constructor from its fields and encoded (a sender's whole cost);
-the envelope-only decode netsim routes with. Then, with --lockstep N, N alternating whole
-lockstep runs of wang2019 over Zenoh per checkout (netsim + 4 agent processes, `python -m
-agents run`): ticks/s and netsim's added latency per hop (a frame in to its deliveries out,
-median). Usage (the other checkout needs msgpack, which `pip install -e '.[test]'` brings):
-    mkdir /tmp/before && git archive cc2dc01 | tar -x -C /tmp/before   # main before the codec moved to msgspec
+`wire.decode` of the frame; the decode and a read of every field of the message (what a
+receiver pays when it uses them all, whether or not a codec makes its arrays at decode);
+`wire.encode` of a decoded message whose fields were read (what a relay does);
+the message built by its type's constructor from its fields and encoded (a sender's whole
+cost); the envelope-only decode netsim routes with. Then, with --lockstep N, N alternating
+whole lockstep runs of wang2019 over Zenoh per checkout (netsim + 4 agent processes, `python
+-m agents run`; "after" is the checkout this script is in): ticks/s and netsim's added latency
+per hop (a frame in to its deliveries out, median). Usage (the other checkout needs msgpack,
+which `pip install -e '.[test]'` brings); 1cc5259 is this repository's last commit before the
+codec moved to msgspec (its hand-written schema layer, swarmloc/wire.py):
+    mkdir /tmp/before && git archive 1cc5259 | tar -x -C /tmp/before
     python benchmarks/bench_wire.py --before /tmp/before [--ticks 200] [--rounds 3] [--lockstep 5]
 Timing only; nothing here is a pass/fail test.
 """
@@ -50,12 +55,20 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def load_codec(tree: Path, tmp: Path):
-    """The other checkout's swarmloc/wire as the package `_before_wire` (it imports only itself,
-    numpy and its MessagePack library)."""
+    """The other checkout's codec as the package `_before_wire` (it imports only itself, numpy
+    and its MessagePack library), in either layout: the room swarmloc/wire/*.py (main since
+    700aaee), or the single module swarmloc/wire.py with its types in swarmloc/messages.py
+    (1cc5259, the hand-written schema layer before msgspec)."""
     pkg = tmp / "_before_wire"
     pkg.mkdir()
-    for src in (tree / "swarmloc" / "wire").glob("*.py"):
-        (pkg / src.name).write_text(src.read_text().replace("swarmloc.wire", "_before_wire"))
+    room = tree / "swarmloc" / "wire"
+    if room.is_dir():
+        sources = {src.name: src for src in room.glob("*.py")}
+    else:
+        sources = {"__init__.py": tree / "swarmloc" / "wire.py", "messages.py": tree / "swarmloc" / "messages.py"}
+    for name, src in sources.items():
+        text = src.read_text().replace("from swarmloc import messages", "from _before_wire import messages")
+        (pkg / name).write_text(text.replace("swarmloc.wire", "_before_wire"))
     sys.path.insert(0, str(tmp))
     return importlib.import_module("_before_wire")
 
@@ -83,8 +96,12 @@ def side_by_side(codecs: dict, frames: list[bytes], reps: int, rounds: int) -> d
     turn, `reps` calls a timing, the best of `rounds` timings."""
     envs = {name: [c.decode(f) for f in frames] for name, c in codecs.items()}
     built = {name: [(type(e.body), fields_of(e.body)) for e in es] for name, es in envs.items()}
+    # A codec may leave a decoded message's arrays to their first read (the lazy arrays measured
+    # in docs/benchmarks.md): "encode" is of a message whose fields were read (`built`), and
+    # "decode + read" is what a receiver pays when it reads every field.
     tasks = {
         "decode": lambda c, i: c.decode(frames[i]),
+        "decode + read every field": lambda c, i: fields_of(c.decode(frames[i]).body),
         "encode (decoded message)": lambda c, i, n=None: c.encode(envs[n][i].body, 1, 1, None),
         "build + encode": lambda c, i, n=None: c.encode(built[n][i][0](*built[n][i][1]), 1, 1, None),
         "envelope only (netsim)": lambda c, i: c.decode(frames[i], body=False),
