@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 from bench_memory import cmdline, rss_kb  # benchmarks/bench_memory.py
-from bench_scale import free_port, leftovers, log, stop  # benchmarks/bench_scale.py
+from bench_scale import ClockWatch, free_port, leftovers, log, stop  # benchmarks/bench_scale.py
 from machine import code_version, cpu_model  # benchmarks/machine.py
 
 from swarmloc.experiment import scenario as S
@@ -66,37 +66,17 @@ def tree(pid: int) -> list[int]:
     return out
 
 
-class Clock:
-    """Arrival times of netsim's clock frames (tick 0, 1, ..., and the final stop frame)."""
+class Clock(ClockWatch):
+    """bench_scale's watch of netsim's clock frames, keeping every arrival time (tick 0, 1, ...,
+    and the final stop frame): how late each tick came."""
 
     def __init__(self, port: int, swarm: str):
-        self.port, self.swarm, self.arrivals = port, swarm, []
-        self.session = self.sub = None
+        super().__init__(port, swarm)
+        self.arrivals: list[float] = []
 
-    def try_connect(self) -> bool:
-        if self.session is not None:
-            return True
-        try:
-            import zenoh
-            conf = zenoh.Config()
-            conf.insert_json5("mode", '"client"')
-            conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{self.port}"]')
-            self.session = zenoh.open(conf)
-            self.sub = self.session.declare_subscriber(f"swarmloc/{self.swarm}/clock",
-                                                       lambda s: self.arrivals.append(time.perf_counter()))
-            return True
-        except Exception:  # netsim's router is not up yet
-            self.session = None
-            return False
-
-    def close(self) -> None:
-        try:
-            if self.sub is not None:
-                self.sub.undeclare()
-            if self.session is not None:
-                self.session.close()
-        except Exception:
-            pass
+    def _on(self, sample) -> None:
+        super()._on(sample)
+        self.arrivals.append(time.perf_counter())
 
 
 def cpu_s(pid: int) -> float | None:

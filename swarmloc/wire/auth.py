@@ -573,49 +573,45 @@ def nonce_of(payload) -> str:
     return text if len(raw) == NONCE_CHARS and all(c in "0123456789abcdef" for c in text) else ""
 
 
+def _open_reply(opener: Opener | None, key: str, payload: bytes, sender: int, nonce: str | None):
+    """A Reply on `key` sealed by `sender`, its envelope's src `sender`, holding `nonce` (None:
+    not checked): (the reply, its data without the nonce). AuthError otherwise."""
+    from swarmloc import wire
+    from swarmloc.wire.messages import Reply
+
+    if opener is not None:
+        payload, _ = opener.open(payload, key, sender)
+    try:
+        env = wire.decode(payload, expect=(Reply,))
+    except wire.WireError as exc:
+        raise AuthError("malformed", str(exc)) from None
+    if env.src != sender:
+        raise AuthError("src-mismatch", f"src {env.src} on {key}")
+    data = env.body.data if isinstance(env.body.data, dict) else {}
+    if nonce is not None and data.get("nonce") != nonce:
+        raise AuthError("stale-nonce", f"the answer of {sender} to another request")
+    return env.body, {k: v for k, v in data.items() if k != "nonce"}
+
+
 def open_stats_reply(opener: Opener | None, key: str, payload: bytes, nonce: str) -> tuple[int, dict]:
     """(agent id, stats) of an agent's answer to the stats query that carried `nonce`: on that
     agent's key, signed by it, its envelope's src, holding the nonce. AuthError otherwise, with
     the reason (a ValueError)."""
     from swarmloc import wire
-    from swarmloc.wire.messages import Reply
 
     try:
         aid = wire.Keys.agent_of(key)
     except ValueError:
         raise AuthError("unknown-agent", key) from None
-    if opener is not None:
-        payload, _ = opener.open(payload, key, aid)
-    try:
-        env = wire.decode(payload, expect=(Reply,))
-    except wire.WireError as exc:
-        raise AuthError("malformed", str(exc)) from None
-    if env.src != aid:
-        raise AuthError("src-mismatch", f"src {env.src} on {key}")
-    data = env.body.data if isinstance(env.body.data, dict) else {}
-    if data.get("nonce") != nonce:
-        raise AuthError("stale-nonce", f"answer of agent {aid} to another query")
-    return aid, {k: v for k, v in data.items() if k != "nonce"}
+    return aid, _open_reply(opener, key, payload, aid, nonce)[1]
 
 
 def open_control_reply(opener: Opener | None, key: str, payload: bytes, nonce: str):
     """netsim's Reply to the control request that carried `nonce`: sealed by netsim for this
     operator (the opener's `me`) on `key`, fresh, holding the nonce (issue 26: a captured reply
-    was accepted within 60 s). AuthError otherwise. Its data comes back without the nonce."""
+    was accepted within 60 s). AuthError otherwise. Its data comes back without the nonce; an
+    unsealed swarm's answer (no opener) is not held to the nonce."""
     from msgspec.structs import replace
 
-    from swarmloc import wire
-    from swarmloc.wire.messages import Reply
-
-    if opener is not None:
-        payload, _ = opener.open(payload, key, NETSIM)
-    try:
-        env = wire.decode(payload, expect=(Reply,))
-    except wire.WireError as exc:
-        raise AuthError("malformed", str(exc)) from None
-    if env.src != NETSIM:
-        raise AuthError("src-mismatch", f"src {env.src}")
-    data = env.body.data if isinstance(env.body.data, dict) else {}
-    if opener is not None and data.get("nonce") != nonce:
-        raise AuthError("stale-nonce", "netsim's answer to another request")
-    return replace(env.body, data={k: v for k, v in data.items() if k != "nonce"})
+    reply, data = _open_reply(opener, key, payload, NETSIM, nonce if opener is not None else None)
+    return replace(reply, data=data)
