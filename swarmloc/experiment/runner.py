@@ -14,6 +14,7 @@ import numpy as np
 
 from swarmloc import wire
 from swarmloc.experiment.results import RunRecord
+from swarmloc.models.motion import platform_model
 from swarmloc.node import Node, Outbox, RadioRx, RadioTx, Timers, estimate_of
 from swarmloc.wire.messages import Sensors
 
@@ -57,7 +58,7 @@ class InProcessRunner:
     def run(self, record: RunRecord | None = None,
             on_tick: Callable[[int, dict[int, Sensors]], None] | None = None) -> RunRecord:
         record = record or RunRecord([a for a, n in self.nodes.items() if n.model.state_dim > 0],
-                                     {a: n.model for a, n in self.nodes.items() if n.model.state_dim > 0})
+                                     {a: platform_model(n.model) for a, n in self.nodes.items() if n.model.state_dim > 0})
         for _ in range(self.env.steps + 1):
             k, t, frames = self.env.tick()
             self.t = t

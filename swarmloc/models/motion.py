@@ -128,6 +128,7 @@ class PlanarPoseBias(PlanarPose):
     name = "planar-pose-bias"
     state_dim = 5
     reported_dim = 3
+    platform = "planar-pose"  # the model of what the estimates report (platform_model)
 
     def __init__(self, speed_scale_walk: float, turn_rate_bias_walk: float, speed_scale_std: float,
                  turn_rate_bias_std: float):
@@ -169,6 +170,13 @@ class PlanarPoseBias(PlanarPose):
     @property
     def layout(self):
         return StateLayout(5, slice(0, 2), slice(2, 3))
+
+
+def platform_model(model: MotionModel) -> MotionModel:
+    """The platform's model behind an estimator's augmented one (what its estimates report and
+    the truth is of); the model itself otherwise."""
+    platform = getattr(model, "platform", None)
+    return MOTION_MODELS[platform] if platform else model
 
 
 def reported_dim(model: MotionModel) -> int:
