@@ -171,8 +171,9 @@ class AgentDaemon:
         radio = wire.publisher_options(zenoh, lossy=self.cfg.direct)
         door = self.door
 
-        def frame(kind):
-            return lambda s: door.admit(kind, s.payload, lambda d: (kind, d, s.attachment), key=str(s.key_expr))
+        def frame(kind, limit=wire.MAX_WIRE_BYTES):
+            return lambda s: door.admit(kind, s.payload, lambda d: (kind, d, s.attachment), limit=limit,
+                                        key=str(s.key_expr))
 
         tagged = self.opener is not None
         ring = self.cfg.keyring
@@ -207,7 +208,7 @@ class AgentDaemon:
               for key in dict.fromkeys(sensor_keys)),
             *(self.session.declare_subscriber(key, frame("measurements")) for key in dict.fromkeys(self.cfg.measurement_keys)),
             self.session.declare_subscriber(self.keys.radio_rx(aid), frame("rx") if self.cfg.direct else delivery),
-            self.session.declare_subscriber(self.keys.clock, frame("clock")),
+            self.session.declare_subscriber(self.keys.clock, frame("clock", wire.key_limit(Clock))),
         ]
         if self.cfg.direct:
             # Remote only: our own broadcasts would come back to us on this key.

@@ -577,8 +577,11 @@ def _watch(procs: Swarm, sc: Scenario, swarm: str, endpoint: str, restart_crashe
     ticks: queue.SimpleQueue = queue.SimpleQueue()
     events: queue.SimpleQueue = queue.SimpleQueue()
     session = zenoh.open(zenoh.Config.from_json5(wire.zenoh_config("client", connect=[endpoint])))
-    sub = session.declare_subscriber(wire.Keys(swarm).clock, lambda s: ticks.put(wire.bounded(s.payload)))
-    sub_events = session.declare_subscriber(wire.Keys(swarm).events, lambda s: events.put(wire.bounded(s.payload)))
+    # Each key carries one type: a payload longer than it can be is refused by its length alone.
+    clock_max, event_max = wire.key_limit("clock"), wire.key_limit("event")
+    sub = session.declare_subscriber(wire.Keys(swarm).clock, lambda s: ticks.put(wire.bounded(s.payload, clock_max)))
+    sub_events = session.declare_subscriber(wire.Keys(swarm).events,
+                                            lambda s: events.put(wire.bounded(s.payload, event_max)))
     gate = gate or Gate(None)
     tick, now_t = None, 0.0
     drops = _DropWatch(swarm, endpoint) if sc.clock.mode == "realtime" else None

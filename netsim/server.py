@@ -55,6 +55,7 @@ from swarmloc.wire.messages import (
 log = logging.getLogger("swarmloc.netsim")
 NETSIM_ID = 0  # sender id netsim uses on the wire (agent ids are the scenario's)
 STATS_REASONS = ("unknown-agent", "malformed", "src-mismatch", "stale-nonce")  # not the seal's: no auth- prefix
+KEY_TYPES = {"done": Done, "estimate": EstimateMsg, "command": Command}  # what an agent's own keys carry
 
 
 class SetupError(RuntimeError):
@@ -155,6 +156,10 @@ class NetsimServer:
             self.q.put(item)
 
         def frame(kind, stamp=None):
+            # What the key carries at most (the radio: every type; the others: one), refused by
+            # its length before it costs a MAC.
+            limit = wire.key_limit(KEY_TYPES[kind]) if kind in KEY_TYPES else wire.MAX_WIRE_BYTES
+
             def arrived(s):
                 key = str(s.key_expr)
 
@@ -165,7 +170,7 @@ class NetsimServer:
                         return "unknown-agent"
 
                 door.admit(kind, s.payload, lambda d: (kind, key, d, stamp and (time.perf_counter(), s.attachment)), known,
-                           key=key)
+                           limit, key=key)
             return arrived
 
         block = wire.publisher_options(zenoh)

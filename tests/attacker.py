@@ -322,7 +322,33 @@ def trailer_flood(at: Attacker, first: int, last: int, frames: str = "50000", si
     return {"frames": n, "rate": rate_sent}
 
 
-ATTACKS = {"sensors": sensors, "stats": stats, "stop": stop, "launcher": launcher, "lockout": lockout, "flood": replay_flood,
+def oversize(at: Attacker, first: int, last: int, frames: str = "200", size: str = "60000") -> dict:
+    """Issue 26, cheap refusals first, outsider: FRAMES frames of SIZE bytes (within the hard
+    ceiling), each ending in a trailer captured from netsim, alternately on the clock key (every
+    agent and the launcher hear it: a clock frame is at most a few hundred bytes) and on agent
+    2's done key (netsim hears it), delivered reliably, about 200 a second."""
+    from swarmloc.wire.auth import SIG_TRAILER
+
+    k = at.keys
+    at.wait_tick(first)
+    while k.clock not in at.captured and at.tick < last:
+        time.sleep(0.01)
+    with at.lock:
+        trailer = at.captured[k.clock][-SIG_TRAILER.size:]
+    body = bytes(int(size) - len(trailer))
+    n = 0
+    while n < int(frames) and at.tick < last:
+        if n % 2:
+            at.put(k.done(2), body + trailer, "done/oversize")
+        else:
+            at.put(k.clock, body + trailer, "clock/oversize")
+        n += 1
+        time.sleep(0.005)
+    time.sleep(1.0)  # what is still queued in this session goes out before it closes
+    return {"frames": n}
+
+
+ATTACKS = {"oversize": oversize, "sensors": sensors, "stats": stats, "stop": stop, "launcher": launcher, "lockout": lockout, "flood": replay_flood,
            "trailer-flood": trailer_flood, "forge": forge}
 
 

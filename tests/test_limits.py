@@ -70,3 +70,28 @@ def test_the_door_refuses_what_is_oversized_or_not_sealed_before_the_inbox():
     assert opener.admit(sealed) == (b"x" * 100, 3)
     with pytest.raises(auth.AuthError, match="replayed"):
         opener.admit(sealed)
+
+
+def test_a_key_that_carries_one_small_type_refuses_a_longer_payload_before_its_mac(monkeypatch):
+    """Issue 26, "cheap refusals first": on the clock key a payload longer than the widest
+    sealed clock frame is refused by its length (`oversize`); the seal is never checked."""
+    from swarmloc import wire
+    from swarmloc.wire import auth
+    from swarmloc.wire.limits import Door
+    from swarmloc.wire.messages import Clock
+
+    ring = auth.Keyring.generate("s", [3])
+    opener = auth.Opener(ring.for_member("agent-3"), 3)
+    checked = []
+    real = opener.verify
+    monkeypatch.setattr(opener, "verify", lambda data, key: checked.append(len(data)) or real(data, key))
+    door, limit = Door(Inbox(), opener), wire.key_limit(Clock)
+    assert limit < 400
+    key = wire.Keys("s").clock
+    for size in (limit + 1, 60_000):
+        forged = b"y" * (size - auth.TRAILER.size) + b"\0" * (auth.TRAILER.size - 2) + b"E2"
+        assert not door.admit("clock", forged, lambda d: d, limit=limit, key=key)
+    assert door.counts() == {"oversize": 2} and checked == []
+    at_limit = b"y" * (limit - auth.TRAILER.size) + b"\0" * (auth.TRAILER.size - 2) + b"S2"
+    assert not door.admit("clock", at_limit, lambda d: d, limit=limit, key=key)  # its size passes: the seal is checked
+    assert checked == [limit]

@@ -77,6 +77,30 @@ def test_launcher_obeys_only_netsims_sealed_events_and_clock(cli, tmp_path):
         assert seen == expected, kind
 
 
+def test_a_long_frame_on_a_key_of_small_ones_is_refused_by_its_length(cli, tmp_path):
+    """Cheap refusals first: 60 KB frames ending in netsim's real trailer on the clock key and on
+    an agent's `done` key, whose types take a few hundred bytes at most (docs/wire.md, section
+    4), are refused by every receiver as `oversize` before any MAC, each one counted, and the
+    run's estimates are untouched."""
+    sc, path = short(tmp_path)
+    out = tmp_path / "run"
+    run = cli.start_run(str(path), out)
+    try:
+        report = attack(cli, "oversize", 20, sc.clock.steps - 50)
+    except AssertionError:
+        run.kill()
+        raise AssertionError(run.communicate()) from None
+    stdout, stderr = run.communicate(timeout=300)
+    assert run.returncode == 0, stderr
+    sent = Counter(report["sent"])
+    assert sent["clock/oversize"] >= 50 and sent["done/oversize"] >= 50
+    m = assert_unattacked(sc, out)
+    assert m["launcher"]["rejected"]["clock"] == {"oversize": sent["clock/oversize"]}
+    assert m["rejected"]["done"] == {"oversize": sent["done/oversize"]}
+    for aid in sc.agent_ids:
+        assert m["agent_stats"][str(aid)]["rejected"] == {"oversize": sent["clock/oversize"]}, aid
+
+
 def gone(pid: int, timeout: float = 60.0) -> None:
     deadline = time.monotonic() + timeout
     while Path(f"/proc/{pid}").exists() and time.monotonic() < deadline:

@@ -246,9 +246,73 @@ def test_type_frame_limit_checked_after_type_before_body():
         wire.decode(data, body=False)
 
 
-def test_other_types_keep_the_64_kib_limit():
+def _widest(t):
+    """The value of annotation t that encodes longest: every string, list and array at its
+    bound (a string of 4-byte characters), every number at its widest valid value."""
+    import typing
+
+    from msgspec import Meta
+
+    from swarmloc.wire import schema
+
+    origin, args = typing.get_origin(t), typing.get_args(t)
+    if origin is typing.Annotated:
+        spec = next((m for m in t.__metadata__ if isinstance(m, wire.Array)), None)
+        if spec is not None:
+            shape, room = [], spec.max_elements
+            for lo, hi in spec.dims:
+                n = max(lo, min(hi, room)) if not spec.square or not shape else shape[0]
+                shape.append(n)
+                room //= max(n, 1)
+            return np.full(shape, 1.0e-300)  # finite, inside every bound, all 8 (or 4) bytes used
+        meta = next((m for m in t.__metadata__ if isinstance(m, Meta)), Meta())
+        base, inner = args[0], typing.get_origin(args[0])
+        if base is str:
+            return "\U0001F600" * meta.max_length
+        if base is int:
+            return meta.le if meta.le is not None else 2**63 - 1
+        if base is float:
+            return float(meta.le if meta.le is not None and meta.le < schema.MAX_MAGNITUDE else 1.0e12)
+        if inner is list:
+            return [_widest(typing.get_args(base)[0]) for _ in range(meta.max_length)]
+        if inner is dict:
+            k, v = typing.get_args(base)
+            top = _widest(k)
+            return {top - i: _widest(v) for i in range(meta.max_length)}
+        return _widest(base)
+    if origin in (typing.Union, type(int | None)):
+        return _widest(next(a for a in args if a is not type(None)))
+    if isinstance(t, type) and issubclass(t, wire.Message):
+        return t(**{f: _widest(h) for f, h in schema.fields(t)})
+    return {bool: True, int: 2**63 - 1, float: 1.0e12}[t]
+
+
+def test_a_types_frame_limit_is_the_most_its_schema_lets_a_frame_take():
+    """Issue 26: a type's limit is its schema's bound (so a driver may refuse a longer frame on
+    the type's key before its MAC): the widest valid frame of each type fits it and decodes."""
+    from swarmloc.wire import schema
+
     assert wire.MAX_WIRE_BYTES == wire.MAX_FRAME_BYTES == 65536 and wire.ZENOH_MAX_MESSAGE_BYTES == 4 * 65536
-    assert all(cls.MAX_BYTES == 65536 for name, cls in wire.REGISTRY.items() if name != "nbp.belief")
+    own = 0
+    for name, cls in wire.REGISTRY.items():
+        bound = schema.frame_bound(name, cls)
+        if name == "nbp.belief":  # declares its own, above what its schema allows
+            assert bound <= cls.MAX_BYTES == 20480
+        else:
+            assert cls.MAX_BYTES == (65536 if bound is None else min(65536, bound)), name
+        if cls.MAX_BYTES < 65536:
+            own += 1
+            msg = _widest(cls)
+            data = wire.encode(msg, wire.MAX_ID, 2**63 - 1, wire.MAX_ID)
+            assert len(data) <= cls.MAX_BYTES, (name, len(data), cls.MAX_BYTES)
+            wire.decode(data)
+    assert own >= 15  # clock, done, event, time.echo, radio.nack, link ...: a few hundred bytes each
+    assert wire.max_bytes("clock") < 300 and wire.max_bytes("done") < 300 and wire.max_bytes("event") < 300
+    assert wire.key_limit("clock") == wire.max_bytes("clock") + 83  # an E2 trailer's room
+    assert wire.key_limit("sensors", "clock") == wire.MAX_WIRE_BYTES
+
+
+def test_other_types_keep_the_64_kib_limit():
     assert max(cls.MAX_BYTES for cls in wire.REGISTRY.values()) <= wire.MAX_WIRE_BYTES
     # a beacon of 60000 bytes (the array limit passed for once) is still a valid frame ...
     big = wire.Array(1, max_elements=10**6, dims=((0, 10**6),)).encode(np.zeros(7480))

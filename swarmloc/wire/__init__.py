@@ -44,7 +44,7 @@ from swarmloc.wire.schema import (
 # The front door: the codec below, plus the schema's names a caller needs to read or build frames.
 __all__ = ["SCHEMA_VERSION", "MAX_FRAME_BYTES", "MAX_WIRE_BYTES", "MAX_ID", "ZENOH_MAX_MESSAGE_BYTES", "REGISTRY",
            "WireError", "FrameTooLarge", "Array", "Message", "message", "max_bytes", "decode_body", "Envelope",
-           "encode", "decode", "Keys", "zenoh_config", "bounded", "publisher_options", "encode_send_time",
+           "encode", "decode", "Keys", "zenoh_config", "key_limit", "bounded", "publisher_options", "encode_send_time",
            "decode_send_time", "encode_delivery", "decode_delivery"]
 
 
@@ -260,11 +260,20 @@ def zenoh_config(mode: str, listen: list[str] = (), connect: list[str] = (), gos
     return json.dumps(cfg)
 
 
-def bounded(payload) -> bytes | None:
-    """A subscriber's payload (Zenoh ZBytes) as bytes, or None when it exceeds the hard ceiling
-    MAX_WIRE_BYTES: an oversized frame is never copied out of Zenoh's buffer, let alone queued.
-    (A frame within the ceiling but above its own type's limit is refused by `decode`.)"""
-    return payload.to_bytes() if len(payload) <= MAX_WIRE_BYTES else None
+def key_limit(*types) -> int:
+    """The most bytes a frame on a key that carries only message types `types` (classes, or
+    type names) can take, sealed: the largest of their frame limits and a seal's longest
+    trailer, at most the hard ceiling. A driver refuses a longer payload on that key by its
+    length, before it costs a MAC (docs/security.md#limits)."""
+    return min(MAX_WIRE_BYTES, max(map(max_bytes, types)) + max(SEAL_TRAILERS.values()))
+
+
+def bounded(payload, limit: int = MAX_WIRE_BYTES) -> bytes | None:
+    """A subscriber's payload (Zenoh ZBytes) as bytes, or None when it exceeds `limit` (the
+    hard ceiling MAX_WIRE_BYTES, or the key's own, `key_limit`): an oversized frame is never
+    copied out of Zenoh's buffer, let alone queued. (A frame within the limit but above its
+    own type's is refused by `decode`.)"""
+    return payload.to_bytes() if len(payload) <= limit else None
 
 
 def publisher_options(zenoh, lossy: bool = False) -> dict:

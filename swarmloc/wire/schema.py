@@ -247,10 +247,11 @@ class Message(msgspec.Struct, metaclass=_MessageMeta, frozen=True, forbid_unknow
 REGISTRY: dict[str, type] = {}
 
 
-def message(name: str, max_bytes: int = MAX_FRAME_BYTES):
+def message(name: str, max_bytes: int | None = None):
     """Register a Message subclass as wire message type `name`. `max_bytes`: the type's frame
-    limit (whole encoded frame, envelope included), at most the hard ceiling MAX_WIRE_BYTES."""
-    if not 0 < max_bytes <= MAX_WIRE_BYTES:
+    limit (whole encoded frame, envelope included), at most the hard ceiling MAX_WIRE_BYTES; by
+    default the most its schema lets a frame take (frame_bound), at most MAX_FRAME_BYTES."""
+    if max_bytes is not None and not 0 < max_bytes <= MAX_WIRE_BYTES:
         raise TypeError(f"message type {name!r}: max_bytes {max_bytes} not in 1..{MAX_WIRE_BYTES}")
 
     def wrap(cls):
@@ -258,12 +259,66 @@ def message(name: str, max_bytes: int = MAX_FRAME_BYTES):
             raise TypeError(f"message type {name!r} registered twice")
         if not (isinstance(cls, type) and issubclass(cls, Message)):
             raise TypeError(f"message type {name!r}: {cls!r} is not a wire Message")
-        cls.TYPE, cls.MAX_BYTES = name, max_bytes
+        if max_bytes is None:
+            # The most the type's schema lets a frame take (strings, lists and arrays at their
+            # bounds): a driver refuses a larger frame on the type's key before it costs a MAC
+            # (limits.Door), and a limit is never looser than the schema.
+            bound = frame_bound(name, cls)
+            limit = MAX_FRAME_BYTES if bound is None else min(MAX_FRAME_BYTES, bound)
+        else:
+            limit = max_bytes
+        cls.TYPE, cls.MAX_BYTES = name, limit
         cls.DECODER, cls.PLAN = _decoder(cls), _plan(cls)
         REGISTRY[name] = cls
         return cls
 
     return wrap
+
+
+def encoded_bound(t) -> int | None:
+    """The most bytes a value of field annotation `t` can take in MessagePack, or None when its
+    schema bounds nothing (a free-form field, a string or list with no limit). Every header is
+    taken at its widest (5 bytes), a string at 4 bytes a character (UTF-8)."""
+    origin, args = typing.get_origin(t), typing.get_args(t)
+    if origin is Annotated:
+        spec = next((m for m in t.__metadata__ if isinstance(m, Array)), None)
+        if spec is not None:  # {dtype, shape, data}: the keys and small values, the bin
+            elements = min(spec.max_elements, math.prod(hi for _, hi in spec.dims))
+            return 64 + 9 * spec.ndim + 5 + elements * spec.itemsize
+        if any(m is PLAIN for m in t.__metadata__):
+            return None
+        meta = next((m for m in t.__metadata__ if isinstance(m, Meta)), Meta())
+        base, inner = args[0], typing.get_origin(args[0])
+        if base is str:
+            return None if meta.max_length is None else 5 + 4 * meta.max_length
+        if inner is list:
+            item = encoded_bound(typing.get_args(base)[0])
+            return None if item is None or meta.max_length is None else 5 + meta.max_length * item
+        if inner is dict:
+            k, v = (encoded_bound(a) for a in typing.get_args(base))
+            return None if k is None or v is None or meta.max_length is None else 5 + meta.max_length * (k + v)
+        return encoded_bound(base)
+    if origin in _UNION:
+        parts = [encoded_bound(a) for a in args]
+        return None if None in parts else max(parts)
+    if isinstance(t, type) and issubclass(t, Message):
+        parts = [encoded_bound(h) for h in (t._hints[f] for f in t.__struct_fields__)]
+        if None in parts:
+            return None
+        return 5 + sum(5 + len(f.encode()) + b for f, b in zip(t.__struct_fields__, parts))
+    if t is type(None) or t is bool:
+        return 1
+    if t is int or t is float:
+        return 9
+    return None  # str, list or dict with no limit, Any
+
+
+def frame_bound(name: str, cls) -> int | None:
+    """The most bytes a whole frame of message type `name` (class `cls`) can take: the envelope
+    (swarmloc.wire.encode's six keys, every number at its widest) around the largest body."""
+    body = encoded_bound(cls)
+    return None if body is None else 5 + sum(5 + len(k) for k in ("v", "type", "src", "seq", "dst", "body")) + \
+        4 * 9 + 5 + len(name.encode()) + body
 
 
 def max_bytes(msg) -> int:
