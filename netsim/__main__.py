@@ -62,7 +62,7 @@ def main(argv=None) -> int:
     tune_gc()
     cfg = ServerConfig(swarm=a.swarm, listen=tuple(a.listen or ["tcp/127.0.0.1:7447"]), out=a.out,
                        join_timeout=a.join_timeout, tick_timeout=a.tick_timeout, plots=not a.no_plots,
-                       await_rejoin=a.await_rejoin, keyring=keyring, view_port=a.view, ros2=topics,
+                       await_rejoin=a.await_rejoin, keyring=keyring, keys_path=a.keys, view_port=a.view, ros2=topics,
                        record=None if a.no_record else a.record or (a.out / "run.mcap" if a.out is not None else None))
     try:
         m = NetsimServer(sc, cfg).run()

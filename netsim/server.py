@@ -78,6 +78,7 @@ class ServerConfig:
     plots: bool = True
     await_rejoin: bool = False  # lockstep: an agent that went away (a crash) is restarted by the launcher
     keyring: object | None = None  # swarmloc.wire.auth.Keyring: every frame sealed and opened with it (docs/security.md)
+    keys_path: Path | None = None  # where the keyring came from: revocations made while the run goes are read there
     record: Path | None = None  # run.mcap: every frame and the Foxglove view, written as the run goes
     view_port: int | None = None  # the live view: a Foxglove WebSocket server on 127.0.0.1 (0: any free port)
     ros2: object | None = None  # swarmloc.wire.ros2.Topics: every estimate also on ROS 2 topics (docs/ros2.md)
@@ -134,6 +135,8 @@ class NetsimServer:
         self.opener = auth.Opener(ring, NETSIM_ID) if ring is not None else None
         # Refused in Zenoh's callbacks, before the queue: oversize, no seal or a wrong one.
         self.door = limits.Door(self.q, self.opener)
+        self.revocations = auth.Revocations(ring, cfg.keys_path) if ring is not None and cfg.keys_path else None
+        self.revoked: set[int] = set()  # agents of the run revoked while it went: gone for good
         self.recorder = None  # swarmloc.experiment.recording.Recorder, made by open()
         self.view = None  # the live view's foxglove WebSocketServer
         self.ros2 = None  # swarmloc.wire.ros2.Ros2Publisher
@@ -333,9 +336,11 @@ class NetsimServer:
         elif kind == "ctl":
             self._control(payload)
 
-    def _on_alive(self, aid: int, up: bool) -> None:
+    def _on_alive(self, aid: int, up: bool, event: bool = True) -> None:
         if aid not in self.delivered:
             return self._refuse("alive", self.keys.alive(aid), "unknown-agent")
+        if aid in self.revoked:  # left already; a token it declares again is not a return
+            return self._refuse("alive", self.keys.alive(aid), "revoked") if up else None
         # Zenoh reports a key's first token and its last one going: a second token on an
         # agent's key (a stranger's) makes no event at all.
         if up:
@@ -356,7 +361,7 @@ class NetsimServer:
             self.alive.discard(aid)
             self.sim.down.add(aid)  # the radio now drops (and NACKs) frames to it as "down"
             log.warning("agent %s left the swarm at tick %d", aid, self.sim.k)
-            if not self.finished:
+            if not self.finished and event:
                 self.agent_events.append({"k": self.sim.k, "t": self.sim.t, "agent": aid, "event": "left"})
                 if self.recorder is not None:
                     self.recorder.event(self.sim.t, f"agent {aid} left the swarm at tick {self.sim.k}", "warning")
@@ -577,7 +582,26 @@ class NetsimServer:
         finally:
             self.close()
 
+    def _revoke(self) -> None:
+        """An agent revoked while the run goes (`swarmloc keys revoke`) leaves it for good: its
+        frames are refused from now on (`auth-revoked`), nothing is delivered to it and lockstep
+        stops waiting for it."""
+        for name in self.revocations.poll(time.monotonic()):
+            if not name.startswith("agent-") or int(name[6:]) not in self.delivered:
+                continue
+            aid = int(name[6:])
+            log.warning("agent %s revoked at tick %d: its frames are refused from now on", aid, self.sim.k)
+            self.agent_events.append({"k": self.sim.k, "t": self.sim.t, "agent": aid, "event": "revoked"})
+            if self.recorder is not None:
+                self.recorder.event(self.sim.t, f"agent {aid} revoked at tick {self.sim.k}", "warning")
+            if aid in self.alive:
+                self._on_alive(aid, False, event=False)
+            self.revoked.add(aid)
+            self.awaited.discard(aid)
+
     def _start_tick(self) -> int:
+        if self.revocations is not None:
+            self._revoke()
         before = self.sim.faults.killed()
         k, t, frames = self.sim.tick(self.pending_faults)
         self.pending_faults = []

@@ -348,7 +348,25 @@ def oversize(at: Attacker, first: int, last: int, frames: str = "200", size: str
     return {"frames": n}
 
 
-ATTACKS = {"oversize": oversize, "sensors": sensors, "stats": stats, "stop": stop, "launcher": launcher, "lockout": lockout, "flood": replay_flood,
+def revoked(at: Attacker, first: int, last: int, keys: str, frames: str = "100") -> dict:
+    """Revocation while the run goes: agent 2, revoked, still holds its own keys (KEYS, a copy
+    taken before) and seals fresh frames with them, alternately on its radio key and its `done`
+    key, from tick FIRST, about 200 a second."""
+    from swarmloc.wire.auth import Sealer
+
+    ring = member_ring(keys)
+    sealer, k, n = Sealer(ring, MEMBER), at.keys, 0
+    at.wait_tick(first)
+    while n < int(frames) and at.tick < last:
+        key, label = (k.radio_tx(MEMBER), "tx") if n % 2 else (k.done(MEMBER), "done")
+        at.put(key, sealer.seal(wire.encode(Done(at.tick, 0, 0), MEMBER, 10**6 + n), key, 0), f"{label}/auth-revoked")
+        n += 1
+        time.sleep(0.005)
+    time.sleep(1.0)
+    return {"frames": n}
+
+
+ATTACKS = {"revoked": revoked, "oversize": oversize, "sensors": sensors, "stats": stats, "stop": stop, "launcher": launcher, "lockout": lockout, "flood": replay_flood,
            "trailer-flood": trailer_flood, "forge": forge}
 
 

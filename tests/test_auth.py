@@ -122,6 +122,33 @@ def test_a_revoked_member_is_refused_and_nobody_else_is_rekeyed(tmp_path):
     assert Opener(hub, 0).open(Sealer(hub.for_member("agent-2"), 2).seal(frame, K.radio_tx(2), 0), K.radio_tx(2))[1] == 2
 
 
+def test_a_running_process_takes_a_revocation_from_its_key_file(tmp_path):
+    """auth.Revocations: netsim's ring (and a member's, from members.json) takes a revocation
+    written while it runs, at the next look once its period has passed; nothing before."""
+    from swarmloc.wire.auth import Revocations
+
+    hub = Keyring.generate("s", [1, 2])
+    hub.save_directory(tmp_path)
+    frame = wire.encode(Clock(0, 0.0, "lockstep", 0.5), 2, 1)
+    from_2 = Sealer(Keyring.load(tmp_path, "agent-2"), 2)
+    running, member = Keyring.load(tmp_path), Keyring.load(tmp_path, "agent-1")
+    watches = [Revocations(running, tmp_path, period=1.0), Revocations(member, tmp_path / "agent-1.secret", period=1.0)]
+    opener = Opener(running, 0)
+    assert [w.poll(0.0) for w in watches] == [[], []]
+    assert opener.open(from_2.seal(frame, K.radio_tx(2), 0), K.radio_tx(2))[1] == 2
+    admin = Keyring.load(tmp_path)  # `swarmloc keys revoke DIR 2`
+    admin.revoke("agent-2")
+    admin.save_directory(tmp_path, [])
+    assert [w.poll(0.5) for w in watches] == [[], []]  # too soon
+    assert "agent-2" not in running.revoked
+    assert [w.poll(1.0) for w in watches] == [["agent-2"], ["agent-2"]]
+    assert "agent-2" in running.revoked and "agent-2" in member.revoked
+    assert reason(opener.open, from_2.seal(frame, K.radio_tx(2), 0), K.radio_tx(2)) == "revoked"
+    assert [w.poll(5.0) for w in watches] == [[], []]  # once
+    (tmp_path / "swarm.key").write_text("{half written")
+    assert watches[0].poll(10.0) == [] and "agent-2" in running.revoked
+
+
 def test_a_frame_counts_only_at_its_receiver_and_windows_are_per_sender_and_receiver():
     """Issue 26, finding 2: the receiver is under the seal. A frame netsim sealed for agent 1 is
     refused by agent 4 before any MAC; netsim's frames to two receivers are two windows."""

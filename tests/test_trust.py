@@ -101,6 +101,46 @@ def test_a_long_frame_on_a_key_of_small_ones_is_refused_by_its_length(cli, tmp_p
         assert m["agent_stats"][str(aid)]["rejected"] == {"oversize": sent["clock/oversize"]}, aid
 
 
+def test_a_member_revoked_while_the_run_goes_is_refused_from_then_on(cli, tmp_path):
+    """`swarmloc keys revoke` on a running swarm's key directory: netsim reads the revocation
+    within a second, agent 2 leaves the run for good (an `agent_events` entry `revoked`), every
+    frame it seals afterwards with its own keys is refused (`auth-revoked`), and the others run
+    on to the end with no tick timed out."""
+    import shutil
+
+    sc, path = short(tmp_path, 800.0)  # 1601 ticks: still going when the attacker is up
+    out = tmp_path / "run"
+    run = cli.start_run(str(path), out)
+    try:
+        keys, stolen = out / "logs" / "keys", tmp_path / "agent-2-keys"
+        cli.wait_tick(20, run, timeout=240)
+        stolen.mkdir(mode=0o700)
+        for name in ("agent-2.secret", "members.json"):  # what agent 2 holds
+            shutil.copy2(keys / name, stolen / name)
+        before = cli.wait_tick(0, run)["k"]
+        p = cli.run("keys", "revoke", str(keys), "2")
+        assert p.returncode == 0, p.stderr
+        time.sleep(1.5)  # netsim looks at the key file once a second
+        at = cli.wait_tick(0, run)["k"]
+        report = attack(cli, "revoked", at + 2, sc.clock.steps - 20, stolen)
+    except AssertionError:
+        run.kill()
+        raise AssertionError(run.communicate()) from None
+    stdout, stderr = run.communicate(timeout=300)
+    assert run.returncode == 0, stderr
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["ticks"] == sc.clock.steps + 1 and m["tick_timeouts"] == 0 and m["unresponsive_agents"] == [], stderr
+    events = [e for e in m["agent_events"] if e["agent"] == 2]
+    assert [e["event"] for e in events] == ["revoked"] and before <= events[0]["k"] <= at, (before, at, events)
+    sent = Counter(report["sent"])
+    assert sent["tx/auth-revoked"] >= 20 and sent["done/auth-revoked"] >= 20
+    for kind in ("tx", "done"):
+        assert m["rejected"][kind].get("auth-revoked", 0) >= sent[f"{kind}/auth-revoked"], (kind, m["rejected"])
+    zen = np.load(out / "estimates" / "ukf-dcl.npz")
+    others = [i for i, a in enumerate(sc.agent_ids) if a != 2]
+    assert np.isfinite(zen["mean"][-1, others]).all()  # the others estimate to the end
+
+
 def gone(pid: int, timeout: float = 60.0) -> None:
     deadline = time.monotonic() + timeout
     while Path(f"/proc/{pid}").exists() and time.monotonic() < deadline:

@@ -526,6 +526,48 @@ class Opener:
         return frame, sealer
 
 
+class Revocations:
+    """Revocations made while a process runs (`swarmloc keys revoke`): the file that lists them
+    (the hub's KEY_FILE, or a member's DIRECTORY_FILE) looked at again at most every `period`
+    seconds, and a member newly listed revoked in `ring` from then on, so its keys open nothing
+    more. Only revocations: a member added or given new keys needs its receivers restarted."""
+
+    def __init__(self, ring: Keyring, path: Path, period: float = 1.0):
+        path = Path(path)
+        if path.is_dir():
+            path = path / (KEY_FILE if ring.member is None else DIRECTORY_FILE)
+        elif path.name != KEY_FILE:
+            path = path.with_name(DIRECTORY_FILE)
+        self.ring, self.path, self.period = ring, path, period
+        self._next, self._seen = 0.0, self._stamp()
+
+    def _stamp(self):
+        try:
+            st = self.path.stat()
+        except OSError:
+            return None
+        return st.st_mtime_ns, st.st_size
+
+    def poll(self, now: float) -> list[str]:
+        """Members revoked since the last look (revoked in the ring now), [] if none or too soon.
+        A file caught half-written, or unreadable, is looked at again next time."""
+        if now < self._next:
+            return []
+        self._next = now + self.period
+        stamp = self._stamp()
+        if stamp is None or stamp == self._seen:
+            return []
+        try:
+            listed = set(map(str, json.loads(self.path.read_text())["revoked"]))
+        except (OSError, ValueError, KeyError, TypeError):
+            return []
+        self._seen = stamp
+        new = sorted(listed - self.ring.revoked)
+        for name in new:
+            self.ring.revoke(name)
+        return new
+
+
 DELIVERY_DOMAIN = b"swarmloc/delivery/2/"
 
 
