@@ -298,3 +298,41 @@ def test_csl_ctl_beats_il_ctl_on_the_paper_scenario():
     il = [m["il-ctl"]["target_final_error_m"] for m in runs]
     assert sum(a < b for a, b in zip(cc, il)) >= 3, (cc, il)
     assert np.median(cc) < np.median(il)
+
+
+def test_il_ctl_leaves_out_a_members_range_past_the_innovation_bound():
+    """Issue 26, finding 7, IL-CTL: a fix whose range to a target we hold is past the innovation
+    bound (a range 1 km off, from the anchor its sender reports) is dropped and counted, and the
+    target is then as if that fix had not come; an honest one is used."""
+    import copy
+
+    from swarmloc.estimators.ctl.csl_ctl import RUN, IlCtlNode
+    from swarmloc.wire.messages import CtlFix, TargetRangeMsg
+
+    sc = near(20.0)
+    record, _ = recorded(sc)
+    node = IlCtlNode.spec(sc, 1).build()
+    for frames in record.sensors[:-1]:
+        node.step(frames[1])
+    last = record.sensors[-1]
+    truth = np.asarray(sc.world.targets[0].position, dtype=float)
+    # Alone it never has the 3 ranges a first fix takes: the target it holds, seeded.
+    node.targets[0] = (truth + [0.5, -0.3], np.eye(2), last[1].k - 1)
+    anchor = np.array([0.0, 50.0])
+    honest_range = float(np.linalg.norm(np.asarray(truth) - anchor))
+
+    def fix(r):
+        return CtlFix(last[1].k, anchor, np.eye(2) * 0.01, [TargetRangeMsg(0, r, 0.5)])
+
+    runs = {}
+    for name, frame in [("none", None), ("honest", fix(honest_range)), ("lie", fix(honest_range + 1000.0))]:
+        n = copy.deepcopy(node)
+        if frame is not None:  # held until our own frame of that tick opens it
+            n.receive(2, frame)
+        n.step(last[1])
+        if n.gather.pending is not None:
+            n.on_timer(RUN, 0.0)
+        runs[name] = n
+    assert runs["lie"].drops == {"implausible-innovation": 1} and not runs["honest"].drops
+    assert np.array_equal(runs["lie"].targets[0][0], runs["none"].targets[0][0])
+    assert not np.array_equal(runs["honest"].targets[0][0], runs["none"].targets[0][0])

@@ -492,12 +492,28 @@ class IlCtlNode(IndependentNode):
             self._run()
         return []
 
+    def _plausible(self, m, P, anchor, C, r) -> bool:
+        diff = m - anchor
+        u = diff / max(np.linalg.norm(diff), 1e-9)
+        nu = np.array([r.range - np.linalg.norm(diff)])
+        reason = plausibility.innovation(nu, np.array([[u @ (P + C) @ u + r.std**2]]))
+        if reason is None:
+            return True
+        self.drop(reason, f"range to target {r.target} from an anchor at {anchor}")
+        return False
+
     def _run(self) -> None:
         k, fixes, complete = self.gather.close()
         self.stats["incomplete_runs"] += not complete
-        rows = [(f.mean, r) for _, f in sorted(fixes.items()) for r in f.targets]
-        for o in sorted({r.target for _, r in rows}):
-            mine = [(p, r) for p, r in rows if r.target == o]
+        rows = [(f.mean, f.cov, r) for _, f in sorted(fixes.items()) for r in f.targets]
+        for o in sorted({r.target for *_, r in rows}):
+            mine = [(p, C, r) for p, C, r in rows if r.target == o]
+            if o in self.targets:
+                # A range past the innovation bound against the target we hold, from the anchor
+                # its sender reports (issue 26, finding 7): left out of the least squares.
+                m, P, _ = self.targets[o]
+                mine = [row for row in mine if self._plausible(m, P, *row)]
+            mine = [(p, r) for p, _, r in mine]
             anchors = np.array([p for p, _ in mine])
             z, s = np.array([r.range for _, r in mine]), np.array([r.std for _, r in mine])
             if o not in self.targets and len(mine) < self.min_ranges:
