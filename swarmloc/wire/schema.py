@@ -7,7 +7,9 @@ fields, unknown fields, ranges and lengths. Arrays (`Annotated[np.ndarray, Array
 as {dtype, shape, data} maps, decoded by msgspec into a small typed struct (dtype, shape and each
 dimension's range checked there) and turned into numpy afterwards, every array of a frame in one
 vectorised pass (`_arrays`). Decoding never trusts a peer; every failure raises WireError with
-the field path, which the receiver counts and logs before dropping the frame.
+the field path, which the receiver counts and logs before dropping the frame. Those checks, in
+the spec's order, decide every refusal; a frame that passes them all is decoded by a faster
+road to the same value (see "the fast path" below).
 
 What msgspec cannot express is done here, each with its reason: a field with a default is
 optional to msgspec's decoder, while on the wire every field is required (the defaults are
@@ -116,7 +118,7 @@ class Array:
         # What msgspec checks: the map's keys, the dtype string, the number of dimensions and
         # each one's range, data as bin. The rest is a property of the values (_arrays).
         shape = tuple[tuple(Annotated[int, Meta(ge=lo, le=hi)] for lo, hi in dims)] if ndim else tuple[()]
-        self.wire = msgspec.defstruct(f"Array{ndim}", [("dtype", Literal[dtype]), ("shape", shape), ("data", memoryview)],
+        self.wire = msgspec.defstruct(f"Array{ndim}", [("dtype", Literal[dtype]), ("shape", shape), ("data", bytes)],
                                       forbid_unknown_fields=True, frozen=True, gc=False)
         self.wire.SPEC = self
 
@@ -174,16 +176,24 @@ def _coercer(t):
     if origin is Annotated:
         spec = next((m for m in t.__metadata__ if isinstance(m, Array)), None)
         if spec is not None:
-            return lambda v, dt=spec.dtype: None if v is None else _as_array(v, dt)
+            def array(v, ndarray=np.ndarray, np_dtype=spec.np_dtype, dtype=spec.dtype):
+                # what a sender passes, most often: an array of the field's dtype, C order
+                if v.__class__ is ndarray and v.dtype is np_dtype and v.flags.c_contiguous:
+                    return v
+                return None if v is None else _as_array(v, dtype)
+            array.takes_none = True
+            return array
         return _coercer(typing.get_args(t)[0])
     if origin in _UNION:
         inner = [a for a in typing.get_args(t) if a is not type(None)]
         conv = _coercer(inner[0]) if len(inner) == 1 else None
-        return None if conv is None else (lambda v: None if v is None else conv(v))
+        if conv is None or getattr(conv, "takes_none", False):  # an array's: one call, not two
+            return conv
+        return lambda v: None if v is None else conv(v)
     if t is float:
-        return lambda v: v if type(v) is float else float(v)
+        return lambda v: v if v.__class__ is float else float(v)
     if t is int:
-        return lambda v: v if type(v) is int else int(v)
+        return lambda v: v if v.__class__ is int else int(v)
     return None
 
 
@@ -219,6 +229,15 @@ class _MessageMeta(msgspec.StructMeta):
         return cls
 
     def __call__(cls, *args, **kw):
+        if kw or len(args) != len(cls.__struct_fields__):
+            vals = cls._fill(args, kw)
+        else:  # every field given in order, what senders do: no defaults to apply
+            vals = list(args)
+        for i, c in cls._coerce:
+            vals[i] = c(vals[i])
+        return _struct_call(cls, *vals)
+
+    def _fill(cls, args, kw) -> list:
         names = cls.__struct_fields__
         if len(args) > len(names):
             raise TypeError(f"{cls.__name__} takes {len(names)} fields, {len(args)} given")
@@ -234,9 +253,10 @@ class _MessageMeta(msgspec.StructMeta):
                 if d is None:
                     raise TypeError(f"{cls.__name__}: missing field {names[i]!r}")
                 vals[i] = d[0]() if d[1] else d[0]
-        for i, c in cls._coerce:
-            vals[i] = c(vals[i])
-        return super().__call__(*vals)
+        return vals
+
+
+_struct_call = msgspec.StructMeta.__call__  # what super().__call__ is above, without making a super()
 
 
 class Message(msgspec.Struct, metaclass=_MessageMeta, frozen=True, forbid_unknown_fields=True, gc=False):
@@ -332,6 +352,7 @@ def max_bytes(msg) -> int:
 
 
 _DTYPE_NAMES = {np.dtype("<f8"): "<f8", np.dtype("<f4"): "<f4"}
+_F8, _F4 = np.dtype("<f8"), np.dtype("<f4")
 
 
 class _ArrayOut(msgspec.Struct, gc=False):
@@ -342,15 +363,23 @@ class _ArrayOut(msgspec.Struct, gc=False):
     data: Any
 
 
-def _enc_hook(v):
+def _enc_hook(v, ndarray=np.ndarray, f8=_F8, f4=_F4, out=_ArrayOut):
     """Arrays and numpy scalars, which msgspec does not encode itself. The constructor gives a
-    message's arrays their field's dtype, C order; a decoded one is a C-order view already."""
-    if type(v) is np.ndarray:
-        name = _DTYPE_NAMES.get(v.dtype)
+    message's arrays their field's dtype, C order; a decoded one is a C-order view already.
+    (Called for every array of every frame: the defaults are locals, cheaper than globals.)"""
+    if v.__class__ is ndarray:
+        # The data a copy in C order, whatever the array's: for the small arrays of most frames
+        # cheaper than a view of its buffer (v.data), and never a view msgspec cannot read. The
+        # dtype by identity first: hashing one (the dict) costs more than the rest of this.
+        t = v.dtype
+        if t is f8:
+            return out("<f8", v.shape, v.tobytes())
+        if t is f4:
+            return out("<f4", v.shape, v.tobytes())
+        name = _DTYPE_NAMES.get(t)
         if name is None:  # not through the constructor (msgspec.structs.replace): as Array.encode would
             v, name = np.ascontiguousarray(v, "<f8"), "<f8"
-        data = v.data
-        return _ArrayOut(name, v.shape, data if data.c_contiguous else v.tobytes())
+        return out(name, v.shape, v.tobytes())
     if isinstance(v, np.ndarray):
         return _enc_hook(np.asarray(v))
     if isinstance(v, np.integer):
@@ -646,6 +675,138 @@ def _plain(v, path) -> None:
             raise WireError(f"{path}: {type(x).__name__} not allowed")
 
     walk(v, 0)
+
+
+# --------------------------------------------------------------------------- the fast path
+# A frame that passes every check is decoded by msgspec in one pass, envelope and body (the
+# envelope's `type` a tag), and its arrays made by a pass written out for its type: the checks
+# above, one by one in the spec's order, cost more than the decode itself. Whatever this path
+# does not take, it hands to them untouched; they decide (and name) every refusal.
+
+Seq = Annotated[int, Meta(ge=0, le=2**63 - 1)]
+
+
+_FRAME_STRUCTS: dict[type, type] = {}
+
+
+def frame_decoder(envelope, types=None) -> msgspec.msgpack.Decoder | None:
+    """Whole frames of the types registered so far (of those in `types`, if given: a frame of
+    another type is refused at its tag, before its body is read), for swarmloc.wire.decode. A
+    frame's struct has its message type (CLS) and OPEN, which makes it an `envelope` (see
+    `_opener`). The decoder refuses all that the spec's checks refuse before the arrays, and
+    more (a repeated key is checked at each occurrence), not in the spec's order and without the
+    reason: its refusal only sends the frame to those checks. None when no type is left."""
+    structs = []
+    for name, cls in REGISTRY.items():
+        if types is not None and cls not in types:
+            continue
+        if cls not in _FRAME_STRUCTS:
+            _FRAME_STRUCTS[cls] = msgspec.defstruct(
+                f"Frame_{name}", [("v", Literal[SCHEMA_VERSION]), ("src", Id), ("seq", Seq), ("body", cls),
+                                  ("dst", Union[Id, None], None)],
+                tag_field="type", tag=name, forbid_unknown_fields=True, gc=False,
+                namespace={"CLS": cls, "OPEN": staticmethod(_opener(cls, envelope))})
+        structs.append(_FRAME_STRUCTS[cls])
+    # Always a union: msgspec requires a tag only to choose among structs, and decodes a frame
+    # without `type` as the one struct it is given.
+    return msgspec.msgpack.Decoder(Union[(*structs, _NoFrame)]) if structs else None
+
+
+class _NoType:
+    MAX_BYTES = -1  # what decode's fast path takes no frame for
+
+
+_NoFrame = msgspec.defstruct("NoFrame", [], tag_field="type", tag="\0", forbid_unknown_fields=True,
+                             namespace={"CLS": _NoType})
+
+
+def _optional(t) -> bool:
+    origin, args = typing.get_origin(t), typing.get_args(t)
+    if origin is Annotated:
+        return _optional(args[0])
+    return origin in _UNION and type(None) in args
+
+
+def _ordinary_tops(dtype: np.dtype, bound: float) -> bytes:
+    """A translation table of the last byte of a `dtype` value on the wire (little-endian: its
+    sign and the exponent's top bits) to a letter when every value with that last byte is at
+    most `bound` in absolute value, whatever its other bytes (all finite values but the
+    largest), and to a digit otherwise (NaN, inf, values near or beyond the bound)."""
+    shift = 8 * (dtype.itemsize - 1)
+    top = np.array([(b & 0x7F) << shift | ((1 << shift) - 1) for b in range(256)], f"<u{dtype.itemsize}")
+    with np.errstate(invalid="ignore"):
+        return b"".join(b"a" if ok else b"0" for ok in np.abs(top.view(dtype)) <= bound)
+
+
+def _opener(cls, envelope):
+    """A decoded frame of type `cls` to an `envelope`, its arrays made numpy by code written for
+    the type (a loop over the plan costs a few times the arrays' own numpy work), or None,
+    leaving the message untouched, for anything `_arrays` must look at (a refusal, a value
+    near or beyond the smallest bound). Written out for a type whose arrays are its own fields
+    or maps of them, none optional, all of one dtype (every radio frame of UKF-DCL, RDL, EKF-CI
+    and CTL); any other type's arrays go through `_arrays`."""
+    plan = _plan(cls)
+    if not plan:
+        def open(f, envelope=envelope, name=cls.TYPE):
+            return envelope(name, f.src, f.seq, f.body, f.dst)
+        return open
+    if (any(k not in (_ARRAY, _BLOCKS) or _optional(cls._hints[f]) for f, k, _ in plan)
+            or len({s.dtype for _, _, s in plan}) > 1):
+        def open(f, envelope=envelope, name=cls.TYPE, plan=plan):
+            _arrays(f.body, plan, "body")
+            return envelope(name, f.src, f.seq, f.body, f.dst)
+        return open
+    env = {"Envelope": envelope, "TYPE": cls.TYPE}
+    # compiled once a type, at import: a few milliseconds for all of them
+    text = "\n    ".join(_written_out(cls, plan, "return Envelope(TYPE, f.src, f.seq, m, f.dst)", env))
+    exec(text.replace("def open(f):", "def open(f, " + ", ".join(f"{k}={k}" for k in env) + "):"), env)  # noqa: S102
+    env["open"].__doc__ = text  # what it does, for a reader
+    return env["open"]
+
+
+def _written_out(cls, plan, done: str, env: dict) -> list[str]:
+    """The lines of `_opener`'s function for `cls`; the names they use are put in `env`."""
+    specs = [s for _, _, s in plan]
+    size, fmt, bound = specs[0].itemsize, specs[0].fmt, min(s.bound for s in specs)
+
+    def checks(s: str, d: str, n: str, spec) -> str:
+        """`return None` unless the array of shape `s` and data `d` is ordinary."""
+        dims = [f"{s}[{j}]" for j in range(spec.ndim)]
+        cond = [f"len({d}) != {n} * {size}"]
+        if math.prod(hi for _, hi in spec.dims) > spec.max_elements:  # else msgspec's dims imply it
+            cond.insert(0, f"{n} > {spec.max_elements}")
+        if spec.square:
+            cond += [f"{a} != {b}" for a, b in zip(dims, dims[1:])]
+        return f"{n} = {' * '.join(dims) or '1'}\n    if " + " or ".join(cond) + ": return None"
+
+    head, tail, make = [], [], []
+    firm = []  # the data of the arrays every frame has, in order
+    for i, (f, kind, spec) in enumerate(plan):
+        if kind == _ARRAY:
+            head.append(f"w{i} = m.{f}; s{i} = w{i}.shape; d{i} = w{i}.data\n    "
+                        + checks(f"s{i}", f"d{i}", f"n{i}", spec))
+            firm.append(f"d{i}")
+            make.append(f"force_setattr(m, {f!r}, nd(s{i}, dt, ba, o)); o += len(d{i})")
+    for i, (f, kind, spec) in enumerate(plan):
+        if kind == _BLOCKS:
+            tail.append(f"b{i} = m.{f}\n    for w in b{i}.values():\n        s = w.shape; d = w.data\n        "
+                        + checks("s", "d", "n", spec).replace("\n", "\n    ") + "\n        data.append(d)")
+            make.append(f"for k, w in b{i}.items(): b{i}[k] = nd(w.shape, dt, ba, o); o += len(w.data)")
+    env.update(nd=np.ndarray, dt=specs[0].np_dtype, hypot=math.hypot, frombuffer=np.frombuffer,
+               force_setattr=force_setattr, tops=_ordinary_tops(specs[0].np_dtype, bound))
+    # Every value at once: first by its last byte on the wire, letters all when every value is
+    # far enough within the bound (two calls in C for any number of values); else as _views
+    # does it: hypot (>= every |value|; NaN and inf fail it) for a few values, one min and max
+    # for more.
+    return ["def open(f):", "m = f.body", *head, f"data = [{', '.join(firm)}]", *tail,
+            "ba = bytearray().join(data)",
+            f"if not ba[{size - 1}::{size}].translate(tops).isalpha():",
+            f"    if len(ba) <= {_FAST_CHECK * size}:",
+            f"        if not hypot(*memoryview(ba).cast({fmt!r})) <= {bound!r}: return None",
+            "    else:",
+            "        a = frombuffer(ba, dt)",
+            f"        if not (-{bound!r} <= a.min() and a.max() <= {bound!r}): return None",
+            "o = 0", *make, done]
 
 
 # --------------------------------------------------------------------------- the spec's tables
