@@ -175,3 +175,32 @@ def test_rdl_is_consistent_and_between_the_centralized_filter_and_bounded_ukf_dc
     per_tick = nees["rdl"].mean(axis=(0, 2))
     assert per_tick.mean() <= hi, f"RDL overconfident: NEES {per_tick.mean():.2f} > {hi:.2f}"
     assert err["ukf-ccl"] < err["rdl"] < err["ukf-dcl"] < err["il"], err
+
+
+def test_a_beacon_every_few_ticks_changes_no_estimate_and_sends_fewer_frames():
+    """`estimator.params.beacon_every` (issue 29: at 256 platforms the beacons are most of the
+    deliveries): a beacon only says who is in reach, and a neighbour stays known for 3 ticks, so
+    on a lossless radio every 2 or 3 ticks (staggered by id) gives the same estimates, bit for
+    bit, and every range is still used, with fewer radio frames."""
+    from swarmloc.experiment import scenario as S
+
+    got = {}
+    for n in (1, 2, 3):
+        sc = S.load("swarm32").with_overrides(**{"clock.duration": 15.0,
+                                                  "estimator": {"name": "rdl", "params": {"beacon_every": n}}})
+        nodes = make_nodes("rdl", sc)
+        runner = InProcessRunner(Simulation(sc), nodes)
+        record = runner.run()
+        used = sum(nd.stats["measurements_used"] for nd in nodes.values())
+        dropped = sum(nd.stats["measurements_dropped"] for nd in nodes.values())
+        got[n] = (record.trace("rdl"), runner.frames, used, dropped)
+    (ref, frames1, used1, _) = got[1]
+    assert used1 > 300 and all(g[3] == 0 for g in got.values())
+    for n in (2, 3):
+        tr, frames, used, _ = got[n]
+        assert np.array_equal(tr.mean, ref.mean) and np.array_equal(tr.cov, ref.cov), n
+        assert used == used1
+        beacons1 = 32 * 31  # one a platform a tick over 31 ticks
+        assert frames <= frames1 - beacons1 * (1 - 1 / n) * 0.9, (n, frames, frames1)
+    with pytest.raises(Exception, match="beacon_every"):
+        S.load("swarm32").with_overrides(estimator={"name": "rdl", "params": {"beacon_every": 4}})

@@ -167,7 +167,8 @@ for _info in (
                   settings_path="swarmloc.estimators.settings:DclSettings", paper="Wang et al. 2019"),
     EstimatorInfo("rdl", "RDL", "recursive decentralized localization: a range updates the two robots that took it "
                   "and no one else, each holding one factor of every cross-covariance", PLANAR + POSE, "tab:pink",
-                  node="swarmloc.estimators.rdl.node:RdlNode.spec", paper="Luft et al. 2018"),
+                  node="swarmloc.estimators.rdl.node:RdlNode.spec",
+                  settings_path="swarmloc.estimators.settings:RdlSettings", paper="Luft et al. 2018"),
     EstimatorInfo("ukf-ccl", "UKF-CCL", "centralized UKF over the joint state of the swarm", PLANAR + POSE, "tab:orange",
                   reference=True, batch="swarmloc.estimators.ukf.ccl:CentralizedUKF.from_scenario",
                   settings_path="swarmloc.estimators.settings:CclSettings",

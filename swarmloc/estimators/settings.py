@@ -46,6 +46,18 @@ class DclSettings(OdometryBiasSettings):
         "whole connected swarm, one chain at a time, and the filter equals the centralized UKF")
 
 
+class RdlSettings(BaseModel):
+    """RDL settings."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    beacon_every: int = Field(
+        1, ge=1, le=3, description="ticks between two beacons of a platform, staggered by id (every platform "
+        "beacons in its first ticks). A beacon only says who is in reach: a neighbour stays known for 3 ticks after "
+        "its last, so up to 3 loses no range on a lossless radio and cuts the swarm's deliveries (at 256 platforms "
+        "a beacon to each of ~24 in reach is most of them); a lost beacon then counts for more")
+
+
 class CiSettings(BaseModel):
     """EKF-CI (and naive fusion) settings."""
 

@@ -47,10 +47,11 @@ class RdlNode(Node):
         x0, P0 = scenario.prior(aid)
         return NodeSpec.of(cls, aid=aid, x0=x0, P0=P0, model=scenario.agent(aid).model, spread=est.spread,
                            landmarks=[[m.id, *m.position] for m in scenario.world.landmarks], gate=est.gate,
-                           gate_open_after=est.gate_open_after)
+                           gate_open_after=est.gate_open_after, beacon_every=getattr(settings, "beacon_every", 1))
 
     def __init__(self, aid, x0, P0, model="planar-speed-heading", spread: float | None = None,
-                 landmarks=(), gate: float | None = None, gate_open_after: int = 10, max_retries: int = 3):
+                 landmarks=(), gate: float | None = None, gate_open_after: int = 10, max_retries: int = 3,
+                 beacon_every: int = 1):
         super().__init__(aid, x0, P0, model)
         d = self.model.state_dim
         self.ut = kalman.UnscentedTransform.for_pair(d, spread)
@@ -60,6 +61,9 @@ class RdlNode(Node):
         self.factors = fx.Factors(d)
         self.beacons = NeighbourTable(self.id, self.model.position_dim, NEIGHBOUR_TICKS)
         self.neighbours: dict[int, np.ndarray] = {}
+        if not 1 <= beacon_every <= NEIGHBOUR_TICKS:  # a neighbour must beacon again before it is forgotten
+            raise ValueError(f"beacon_every {beacon_every} not in 1..{NEIGHBOUR_TICKS}")
+        self.beacon_every, self.first_k = int(beacon_every), None
         self.jobs: list[tuple] = []  # (key, z, R) this node runs as the pair's lower id, in key order
         self.open: set = set()  # own measurements of this tick not yet applied, gated or dropped
         self.waiting: tuple | None = None  # (k, key, b): the request whose commit we wait for
@@ -85,6 +89,7 @@ class RdlNode(Node):
         product with them is zero: we are uncorrelated with the swarm until pairs meet again."""
         super().resume(k, x, P)
         self.factors.clear()
+        self.first_k = None  # beacons in its first ticks again, as at a start
         self.jobs, self.open, self.waiting, self.later, self.held, self.deferred = [], set(), None, [], [], None
 
     # ------------------------------------------------------------------ tick
@@ -116,8 +121,14 @@ class RdlNode(Node):
         self.nis = []
         self.retries.clear()
         self.neighbours = {j: p for j, p in self.beacons.snapshot(self.k).items() if j not in self.gone}
-        out: list = [Send(Beacon(self.k, self.model.position(self.x).copy(),
-                                 self.P[:self.model.position_dim, :self.model.position_dim].copy(), {}), None)]
+        out: list = []
+        if self.first_k is None:
+            self.first_k = self.k
+        # Staggered by id, so a tick carries 1/beacon_every of the swarm's beacons; all at first,
+        # so every neighbour is known from the second tick on as with a beacon a tick.
+        if self.k - self.first_k < self.beacon_every or (self.k + self.id) % self.beacon_every == 0:
+            out.append(Send(Beacon(self.k, self.model.position(self.x).copy(),
+                                   self.P[:self.model.position_dim, :self.model.position_dim].copy(), {}), None))
         for key, r in keyed_measurements(self.id, sensors):
             if not self.obs.usable(key) or (key[1] != LANDMARK and r.target not in self.neighbours):
                 self.stats["measurements_dropped"] += 1  # cannot model it, or the measured platform is out of reach
