@@ -2,7 +2,8 @@
 
 Runs the scenario over Zenoh (netsim + agent processes) with and without the recording, in
 turn (A B B A A B ...), and reports ticks/s from each run's metrics.json, the ratio pair by pair
-(pairing keeps it meaningful while the machine's speed drifts) and the recording's size.
+(pairing keeps it meaningful while the machine's speed drifts), the CPU each run took (netsim,
+agents and launcher together) and the recording's size.
 Usage: python benchmarks/bench_recording.py [--pairs 5] [--scenario wang2019]
 Timing only; nothing here is a pass/fail test.
 """
@@ -13,6 +14,7 @@ import argparse
 import json
 import os
 import platform
+import resource
 import shutil
 import statistics
 import subprocess
@@ -27,18 +29,24 @@ from machine import cpu_model  # benchmarks/machine.py
 def run(scenario: str, out: Path, record: bool) -> dict:
     cmd = [sys.executable, "-m", "agents", "run", scenario, "--out", str(out), "--port", "0", "--no-plots", "--force",
            "--swarm", f"benchrec{os.getpid()}", *([] if record else ["--no-record"])]
+    # The launcher waits for netsim and its agents, so their CPU is in its children's usage.
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     subprocess.run(cmd, check=True, capture_output=True, text=True)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
     m = json.loads((out / "metrics.json").read_text())
     mcap = out / "run.mcap"
     return {"ticks_per_s": m["ticks_per_s"], "ticks": m["ticks"], "mcap_bytes": mcap.stat().st_size if mcap.exists() else 0,
-            "frames": m.get("recording", {}).get("frames", 0)}
+            "frames": m.get("recording", {}).get("frames", 0),
+            "cpu_s": after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime}
 
 
 def recorder_cost(recording: Path, repeat: int = 3) -> dict:
     """netsim's recording work, alone: every wire frame of a finished run's run.mcap logged again
     and each tick's view (truth, estimates with their error and NEES, links, scene) made again,
-    through a fresh Recorder, timed per tick (the frames are decoded beforehand: netsim has them
-    decoded already). The best of `repeat` passes, as the least disturbed by the machine."""
+    through a fresh Recorder deferred as netsim's is, timed per tick (the frames are decoded
+    beforehand: netsim has them decoded already): the calls, which hold the work (netsim makes
+    them in its loop), and the drain, which does it (netsim's idle time). The best of `repeat`
+    passes, as the least disturbed by the machine."""
     import time
 
     import msgspec
@@ -67,12 +75,14 @@ def recorder_cost(recording: Path, repeat: int = 3) -> dict:
             elif topic.endswith("/netsim/links"):
                 links = [msgspec.structs.asdict(r) for r in wire.decode(data, expect=(Links,)).body.links]
         work.append((ticks[lt], truth, ests, links))
-    best = float("inf")
+    best, best_hold = float("inf"), float("inf")
     with tempfile.TemporaryDirectory() as tmp:
         for _ in range(repeat):
-            rec = R.Recorder(Path(tmp) / "again.mcap", {"writer": "bench", "scenario": sc.to_yaml()}, sc)
+            rec = R.Recorder(Path(tmp) / "again.mcap", {"writer": "bench", "scenario": sc.to_yaml()}, sc, deferred=True)
+            hold = 0.0
             t0 = time.perf_counter()
             for frames, truth, ests, links in work:
+                t1 = time.perf_counter()
                 for topic, data in frames:
                     rec.frame(topic, data, 0.0)
                 if truth:
@@ -83,10 +93,14 @@ def recorder_cost(recording: Path, repeat: int = 3) -> dict:
                     if links is not None:
                         rec.links(links)
                     rec.end_tick(k, t)
+                hold += time.perf_counter() - t1
+                rec.drain()
             rec.close()
             best = min(best, time.perf_counter() - t0)
+            best_hold = min(best_hold, hold)
     frames = sum(len(w[0]) for w in work)
-    return {"ticks": len(work), "frames": frames, "us_per_tick": best / len(work) * 1e6}
+    return {"ticks": len(work), "frames": frames, "us_per_tick": best / len(work) * 1e6,
+            "hold_us_per_tick": best_hold / len(work) * 1e6}
 
 
 def main() -> None:
@@ -97,7 +111,8 @@ def main() -> None:
     a = p.parse_args()
     if a.cost_only:
         c = recorder_cost(Path(a.cost_only))
-        print(f"{c['us_per_tick']:.0f} us per tick, {c['frames'] / c['ticks']:.0f} frames a tick, {c['ticks']} ticks")
+        print(f"{c['us_per_tick']:.0f} us per tick ({c['hold_us_per_tick']:.0f} holding the calls), "
+              f"{c['frames'] / c['ticks']:.0f} frames a tick, {c['ticks']} ticks")
         return
     rows = []
     tmp = Path(tempfile.mkdtemp(prefix="bench_recording-"))  # kept: the last recording is timed alone below
@@ -116,13 +131,18 @@ def main() -> None:
     print(f"## run.mcap in a lockstep {a.scenario} run ({date.today()})\n")
     print(f"Machine: {os.cpu_count()} vCPU ({cpu_model()}), Python {platform.python_version()}, "
           f"Linux {platform.release()}. Command: `python benchmarks/bench_recording.py --pairs {a.pairs}`.\n")
-    print("| pair | ticks/s with run.mcap | ticks/s with --no-record | ratio |")
-    print("|---|---|---|---|")
+    print("| pair | ticks/s with run.mcap | ticks/s with --no-record | ratio | CPU s with | CPU s without |")
+    print("|---|---|---|---|---|---|")
     for i, ((on, off), r) in enumerate(zip(rows, ratios), 1):
-        print(f"| {i} | {on['ticks_per_s']:.1f} | {off['ticks_per_s']:.1f} | {r:.3f} |")
+        print(f"| {i} | {on['ticks_per_s']:.1f} | {off['ticks_per_s']:.1f} | {r:.3f} | {on['cpu_s']:.2f} | "
+              f"{off['cpu_s']:.2f} |")
     med = lambda xs: statistics.median(xs)  # noqa: E731
     print(f"| **median** | **{med([on['ticks_per_s'] for on, _ in rows]):.1f}** | "
-          f"**{med([off['ticks_per_s'] for _, off in rows]):.1f}** | **{med(ratios):.3f}** |")
+          f"**{med([off['ticks_per_s'] for _, off in rows]):.1f}** | **{med(ratios):.3f}** | "
+          f"**{med([on['cpu_s'] for on, _ in rows]):.2f}** | **{med([off['cpu_s'] for _, off in rows]):.2f}** |")
+    cpu = [on["cpu_s"] / off["cpu_s"] for on, off in rows]
+    print(f"\nCPU with the recording over CPU without, pair by pair: median {med(cpu):.3f} "
+          f"({min(cpu):.3f}-{max(cpu):.3f}).")
     on = rows[-1][0]
     print(f"\nrun.mcap: {on['frames']} wire frames of {on['ticks']} ticks, {on['mcap_bytes'] / 1e6:.2f} MB (lz4).")
     c = recorder_cost(tmp / "on" / "run.mcap")
@@ -130,7 +150,8 @@ def main() -> None:
     print(f"\nThe recording's own work in netsim (every frame logged, each tick's view made; "
           f"`recorder_cost`, best of 3): {c['us_per_tick']:.0f} us per tick for {c['frames'] / c['ticks']:.0f} "
           f"frames a tick, {100 * c['us_per_tick'] / tick_us:.1f} % of a tick of the runs without it "
-          f"({tick_us:.0f} us).")
+          f"({tick_us:.0f} us); of it, in netsim's loop (the calls, which hold the work for its idle time): "
+          f"{c['hold_us_per_tick']:.0f} us, {100 * c['hold_us_per_tick'] / tick_us:.1f} %.")
     shutil.rmtree(tmp)
 
 if __name__ == "__main__":

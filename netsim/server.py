@@ -65,6 +65,8 @@ class SetupError(RuntimeError):
 MAX_LINK_ROWS = next(f.type.max_length for f in msgspec.inspect.type_info(Links).fields if f.name == "links")
 """The rows a Links frame may carry (its decoder refuses more)."""
 LAST_TICK_GRACE = 2.0  # s a real-time run waits, after its last tick, for the agents to finish it
+RECORD_SLICE = 2e-4  # s of the recording's held work done at a time while the loop is idle
+RECORD_POLL = 2e-5  # s the loop blocks between two slices: long enough to let a callback in
 
 
 @dataclass
@@ -208,7 +210,8 @@ class NetsimServer:
 
         meta = {"writer": "netsim", "swarm": self.cfg.swarm, "scenario": self.sc.to_yaml(), "seed": self.sc.seed if self.cfg.seed is None else self.cfg.seed,
                 "mode": self.mode, "dt": self.sc.clock.dt, "agents": self.ids}
-        self.recorder = Recorder(self.cfg.record, meta, self.sc)
+        # Deferred: its work is done while the loop waits (`_pump`), off lockstep's critical path.
+        self.recorder = Recorder(self.cfg.record, meta, self.sc, deferred=True)
         if self.cfg.view_port is not None:
             import foxglove
 
@@ -522,9 +525,20 @@ class NetsimServer:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 return False
+            wait = remaining
+            rec = self.recorder
+            if rec is not None and rec.pending:
+                # The recording's work in time the loop would spend waiting anyway: in slices,
+                # since foxglove-sdk logs holding the GIL and a Zenoh callback handing over the
+                # frame we wait for gets it only when this thread blocks.
+                rec.drain(time.perf_counter() + RECORD_SLICE)
+                if rec.pending:
+                    wait = min(remaining, RECORD_POLL)
             try:
-                item = self.q.get(timeout=remaining)
+                item = self.q.get(timeout=wait)
             except queue.Empty:
+                if wait < remaining:
+                    continue
                 return until()
             self._handle(item)
             item = None  # a held Zenoh query is only answered (final) once released

@@ -274,3 +274,42 @@ def test_agents_own_recordings_rerun_together(tmp_path):
     assert np.array_equal(x.mean, y.mean) and np.array_equal(x.cov, y.cov)
     with pytest.raises(R.RecordingError, match="same agent"):
         R.rerun_scenario([paths[0], paths[0]])
+
+
+def test_netsims_deferred_recording_writes_what_an_immediate_one_writes(tmp_path):
+    """netsim holds its recording's work and does it while its loop would wait (`deferred`,
+    `drain` in slices): the file is message for message, byte for byte, the one the same calls
+    make at once, wherever the drains fall (some before any work, some mid-tick)."""
+    import time
+
+    from swarmloc.models.motion import MOTION_MODELS
+
+    sc = S.load("wang2022")
+    drains = np.random.default_rng(11)
+
+    def write(path, deferred):
+        rec = R.Recorder(path, {"writer": "test"}, sc, start_ns=0, deferred=deferred)
+        r = np.random.default_rng(3)
+        for k in range(40):
+            t = 0.5 * k
+            states = {a.id: r.normal(size=MOTION_MODELS[a.model].state_dim) * 50 for a in sc.world.agents}
+            rec.truth(k, t, states, {0: r.normal(size=2) * 30})
+            rec.frame(f"swarmloc/x/agent/{k % 4 + 1}/done", r.bytes(40), t)
+            if k % 7 == 3:
+                rec.event(t, f"agent 2 left the swarm at tick {k}", "warning")
+                rec.fault({"k": k, "t": t, "source": "schedule", "action": "cut", "link": [1, 2]},
+                          [{"id": 1, "action": "cut", "args": {"link": [1, 2]}}])
+            for a in sc.world.agents:
+                n = MOTION_MODELS[a.model].state_dim
+                A = r.normal(size=(n, n))
+                rec.estimate("csl-ctl", a.id, k, t, states[a.id] + r.normal(size=n), A @ A.T + np.eye(n),
+                             ((0, r.normal(size=2), np.eye(2) * 2.0),))
+            rec.links([{"a": 1, "b": 2, "up": True, "snr_db": 10.0}])
+            rec.end_tick(k, t)
+            if deferred and drains.random() < 0.6:
+                rec.drain(time.perf_counter() + drains.choice([-1.0, 1e-5, 1e-3]))  # nothing, a slice, more
+        rec.close()
+        return [(m.topic, m.log_time, bytes(m.data)) for m in R.messages(path)]
+
+    now, held = write(tmp_path / "now.mcap", False), write(tmp_path / "held.mcap", True)
+    assert len(now) > 250 and now == held

@@ -18,11 +18,16 @@ every FLUSH_PERIOD of wall time: a recording cut short by a crash (kill -9) read
 complete chunk (`messages` stops there and says so).
 
 No sockets here: the processes give `Recorder` a foxglove Context they may also serve live
-(netsim's `--view`), and call it from their loops.
+(netsim's `--view`), and call it from their loops. netsim's recorder is `deferred`: it holds the
+calls and does them when netsim's loop would otherwise wait (`drain`), because in lockstep every
+agent waits for netsim between a round's last `done` and the next frame, so work done there,
+the tick's view above all, delays every agent's next step (docs/benchmarks.md, "run.mcap: what
+the recording costs").
 """
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import time
@@ -46,6 +51,11 @@ ELLIPSE_CHI2 = 5.991464547107979  # chi-square quantile 0.95 with 2 degrees of f
 
 SCENE, STATIC, FAULTS, EVENTS, TARGETS = "/scene", "/scene/static", "/faults", "/events", "/truth/targets"
 TRUTH_HISTORY = 64  # ticks of truth kept for scoring estimates that arrive late (real time)
+# Calls a deferred recorder holds before it does them at once anyway: a loop that is never idle
+# (a real-time run beyond the machine) must not grow them without bound.
+MAX_HELD = 20_000
+_METRICS_FIELDS = {"k": {"type": "integer"}, "t": {"type": "number"}, "error_m": {"type": "number"},
+                   "nees": {"type": "number"}, "dof": {"type": "integer"}}
 
 
 def metrics_topic(algorithm: str, aid: int) -> str:
@@ -69,6 +79,22 @@ def _rgba(color: str, alpha: float = 1.0):
     return Color(r=r, g=g, b=b, a=alpha)
 
 
+def _deferrable(impl):
+    """A Recorder call that a deferred recorder holds until `drain`; held calls run in the order
+    they were made, on arguments nobody changes afterwards, so the file is the one an immediate
+    recorder writes."""
+
+    @functools.wraps(impl)
+    def call(self, *args, **kw):
+        if self._held is None:
+            return impl(self, *args, **kw)
+        self._held.append((impl, args, kw))
+        if len(self._held) >= MAX_HELD:
+            self.drain()
+
+    return call
+
+
 @dataclass
 class _Agent:
     model: object  # swarmloc.models.motion.MotionModel
@@ -82,10 +108,11 @@ class Recorder:
     dicts and lists as JSON). scenario: the run's scenario (agents' models, landmarks, targets),
     or None (an agent's own recording: no scene). The caller feeds it frames (`frame`), each
     tick's truth (`truth`), estimates (`estimate`), the link table (`links`), faults and events,
-    and ends every tick with `end_tick`, which draws the scene and flushes when it is due."""
+    and ends every tick with `end_tick`, which draws the scene and flushes when it is due.
+    deferred: those calls are held until `drain` (or `close`); `pending` says some are."""
 
     def __init__(self, path: Path | None, meta: dict, scenario=None, context=None, start_ns: int | None = None,
-                 flush_period: float = FLUSH_PERIOD, scene: bool = True):
+                 flush_period: float = FLUSH_PERIOD, scene: bool = True, deferred: bool = False):
         import foxglove
         from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 
@@ -104,6 +131,7 @@ class Recorder:
         self._raw: dict[str, object] = {}
         self._json: dict[str, object] = {}
         self.frames = 0
+        self._held: deque | None = deque() if deferred else None  # (method, args, kwargs)
         self.sc = scenario
         self.scene_on = scene and scenario is not None
         self.agents: dict[int, _Agent] = {}
@@ -153,11 +181,42 @@ class Recorder:
 
     def frame(self, key: str, data: bytes, t: float) -> None:
         """A frame that crossed Zenoh on `key`, as it went (bytes), at modelled time t."""
-        self._wire_channel(key).log(bytes(data), log_time=self.ns(t))
-        self.frames += 1
+        self.frames += 1  # now, not when drained: the run's metrics count them before close
+        if self._held is None:
+            self._wire_channel(key).log(bytes(data), log_time=self.ns(t))
+        else:  # spelt out, not @_deferrable: 55 frames a tick for one scene
+            self._held.append((Recorder._frame, (key, bytes(data), t), None))
+            if len(self._held) >= MAX_HELD:
+                self.drain()
+
+    def _frame(self, key: str, data: bytes, t: float) -> None:  # the held frame's marker (drain does it)
+        self._wire_channel(key).log(data, log_time=self.ns(t))
+
+    @property
+    def pending(self) -> bool:
+        return bool(self._held)
+
+    def drain(self, deadline: float | None = None) -> None:
+        """Do the held calls, in order; with `deadline` (time.perf_counter()), only until then."""
+        held, raw, frame = self._held, self._raw, Recorder._frame
+        last_t = ns = None
+        while held:
+            impl, args, kw = held.popleft()
+            if impl is frame:  # most of what is held: inline, a tick's frames share one time
+                key, data, t = args
+                if t != last_t:
+                    last_t, ns = t, self.ns(t)
+                (raw.get(key) or self._wire_channel(key)).log(data, log_time=ns)
+            elif kw:
+                impl(self, *args, **kw)
+            else:
+                impl(self, *args)
+            if deadline is not None and time.perf_counter() >= deadline:
+                return
 
     # ---------------------------------------------------------------- the view's inputs
 
+    @_deferrable
     def truth(self, k: int, t: float, states: dict[int, np.ndarray], targets: dict[int, np.ndarray]) -> None:
         self._truth = states
         self._truth_k.append((k, states))
@@ -169,6 +228,7 @@ class Recorder:
                                ).log({"k": k, "t": t, "ids": ids, "positions": [np.asarray(targets[o], float).tolist()
                                                                                 for o in ids]}, log_time=self.ns(t))
 
+    @_deferrable
     def estimate(self, algorithm: str, aid: int, k: int, t: float, mean: np.ndarray, cov: np.ndarray,
                  targets=()) -> None:
         """An agent's estimate of tick k: kept for the scene, and its error and NEES against the
@@ -187,7 +247,9 @@ class Recorder:
         if n == 0 or len(mean) != n or len(x) != n:
             return
         p = a.model.position_dim
-        err = float(np.linalg.norm(mean[:p] - x[:p]))
+        d = mean[:p] - x[:p]
+        # np.linalg.norm's own sum for a float vector (sqrt of d.dot(d)), without its checks.
+        err = math.sqrt(d.dot(d)) if d.dtype == np.float64 and d.ndim == 1 else float(np.linalg.norm(d))
         try:
             e = a.model.error(x, mean)
             nees = float(e @ np.linalg.solve(cov, e))
@@ -195,11 +257,10 @@ class Recorder:
             nees = None
         if not (math.isfinite(err) and (nees is None or math.isfinite(nees))):
             return
-        self._json_channel(metrics_topic(algorithm, aid), "swarmloc.metrics",
-                           {"k": {"type": "integer"}, "t": {"type": "number"}, "error_m": {"type": "number"},
-                            "nees": {"type": "number"}, "dof": {"type": "integer"}}
-                           ).log({"k": k, "t": t, "error_m": err, "nees": nees, "dof": n}, log_time=self.ns(t))
+        self._json_channel(metrics_topic(algorithm, aid), "swarmloc.metrics", _METRICS_FIELDS).log(
+            {"k": k, "t": t, "error_m": err, "nees": nees, "dof": n}, log_time=self.ns(t))
 
+    @_deferrable
     def links(self, rows: list[dict]) -> None:
         self._links = rows
 
@@ -211,6 +272,7 @@ class Recorder:
         ch.log(Log(timestamp=Timestamp(sec=ns // 1_000_000_000, nsec=ns % 1_000_000_000), level=level, message=text,
                    name=name), log_time=ns)
 
+    @_deferrable
     def fault(self, entry: dict, active: list[dict]) -> None:
         """A fault applied or cleared (an entry of netsim's fault log: k, t, source, action and its
         fields) as a log entry; `active` (FaultState.describe()): the faults in force, which the
@@ -224,6 +286,7 @@ class Recorder:
         self._faults = {str(a["id"]): f"#{a['id']} {a['action']} " + " ".join(
             f"{k}={_compact(v)}" for k, v in a.get("args", {}).items()) for a in active}
 
+    @_deferrable
     def event(self, t: float, text: str, level: str = "info") -> None:
         from foxglove.messages import LogLevel
 
@@ -273,6 +336,7 @@ class Recorder:
                log_time=self.ns(t))
         self.static_logged = True
 
+    @_deferrable
     def end_tick(self, k: int, t: float) -> None:
         """The tick's scene (every agent's truth, the latest estimates, links, faults); a flush
         when one is due."""
@@ -293,7 +357,7 @@ class Recorder:
         SceneEntity, SceneUpdate, SpherePrimitive, TextPrimitive = M.SceneEntity, M.SceneUpdate, M.SpherePrimitive, \
             M.TextPrimitive
         s = self.size
-        black = Color(r=0.0, g=0.0, b=0.0, a=1.0)
+        black, dot, big = _const("black"), _const(("vec", s)), _const(("vec", 1.5 * s))
         at = {}
         spheres, texts = [], []
         for aid, a in self.agents.items():
@@ -305,11 +369,11 @@ class Recorder:
                 continue
             z = p[2] if len(p) > 2 else 0.0
             at[aid] = (p[0], p[1], z)
-            spheres.append(SpherePrimitive(pose=_pose(*at[aid]), size=_vec(s, s, s), color=black))
+            spheres.append(SpherePrimitive(pose=_pose(*at[aid]), size=dot, color=black))
             texts.append(TextPrimitive(pose=_pose(at[aid][0], at[aid][1], z + 1.5 * s), billboard=True, font_size=14,
                                        scale_invariant=True, color=black, text=a.label))
         for o, p in self._targets.items():
-            spheres.append(SpherePrimitive(pose=_pose(float(p[0]), float(p[1]), 0.0), size=_vec(1.5 * s, 1.5 * s, 1.5 * s),
+            spheres.append(SpherePrimitive(pose=_pose(float(p[0]), float(p[1]), 0.0), size=big,
                                            color=Color(r=0.85, g=0.1, b=0.1, a=1.0)))
             texts.append(TextPrimitive(pose=_pose(float(p[0]), float(p[1]), 2 * s), billboard=True, font_size=14,
                                        scale_invariant=True, color=Color(r=0.85, g=0.1, b=0.1, a=1.0), text=f"T{o}"))
@@ -325,12 +389,12 @@ class Recorder:
                 if not (math.isfinite(mx) and math.isfinite(my)):
                     continue
                 z = float(mean[2]) if a.model.position_dim > 2 else 0.0
-                dots.append(SpherePrimitive(pose=_pose(mx, my, z), size=_vec(0.8 * s, 0.8 * s, 0.8 * s), color=color))
+                dots.append(SpherePrimitive(pose=_pose(mx, my, z), size=_const(("vec", 0.8 * s)), color=color))
                 disc = _ellipse(mean[:2], cov[:2, :2], z, fill, CylinderPrimitive, s)
                 if disc is not None:
                     discs.append(disc)
                 for _, m, P in targets:
-                    dots.append(SpherePrimitive(pose=_pose(float(m[0]), float(m[1]), 0.0), size=_vec(s, s, s),
+                    dots.append(SpherePrimitive(pose=_pose(float(m[0]), float(m[1]), 0.0), size=dot,
                                                 color=color))
                     disc = _ellipse(m[:2], P[:2, :2], 0.0, fill, CylinderPrimitive, s)
                     if disc is not None:
@@ -367,6 +431,8 @@ class Recorder:
         self._flushed = time.monotonic()
 
     def close(self) -> None:
+        if self._held:
+            self.drain()
         if self.writer is not None:
             self.writer.close()
             self.writer = None
@@ -397,10 +463,29 @@ def _pt(x, y, z):
     return _fm().Point3(x=x, y=y, z=z)
 
 
-def _pose(x, y, z, yaw: float = 0.0):
+_CONST: dict = {}
+
+
+def _const(key):
+    """A message part drawn every tick with the same values, made once (they are values: a
+    message built with one holds a copy)."""
+    v = _CONST.get(key)
+    if v is None:
+        m = _fm()
+        if key == "black":
+            v = m.Color(r=0.0, g=0.0, b=0.0, a=1.0)
+        elif key == "upright":
+            v = m.Quaternion(x=0.0, y=0.0, z=math.sin(0.0), w=math.cos(0.0))
+        else:  # ("vec", size): a cube's sides
+            v = _vec(key[1], key[1], key[1])
+        _CONST[key] = v
+    return v
+
+
+def _pose(x, y, z, yaw: float | None = None):
     m = _fm()
-    return m.Pose(position=m.Vector3(x=x, y=y, z=z), orientation=m.Quaternion(x=0.0, y=0.0, z=math.sin(yaw / 2),
-                                                                              w=math.cos(yaw / 2)))
+    q = _const("upright") if yaw is None else m.Quaternion(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))
+    return m.Pose(position=m.Vector3(x=x, y=y, z=z), orientation=q)
 
 
 def _ellipse(m, P, z, color, cylinder, s):
