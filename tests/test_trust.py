@@ -39,6 +39,22 @@ def attack(cli, name: str, first: int, last: int, *args, timeout: float = 200) -
     return json.loads(p.stdout)
 
 
+def attacked_run(cli, tmp_path, name: str, *args, first: int = 20, margin: int = 50):
+    """A short wang2019 run attacked by tests/attacker.py's `name` from tick `first` to `margin`
+    ticks before its end; (scenario, run directory, the attacker's report) once it ended well."""
+    sc, path = short(tmp_path)
+    out = tmp_path / "run"
+    run = cli.start_run(str(path), out)
+    try:
+        report = attack(cli, name, first, sc.clock.steps - margin, *args)
+    except AssertionError:
+        run.kill()
+        raise AssertionError(run.communicate()) from None
+    stdout, stderr = run.communicate(timeout=300)
+    assert run.returncode == 0, stderr
+    return sc, out, report
+
+
 def assert_unattacked(sc, out: Path) -> dict:
     """The run's estimates are bit for bit those of the same run in process."""
     m = json.loads((out / "metrics.json").read_text())
@@ -54,16 +70,7 @@ def assert_unattacked(sc, out: Path) -> dict:
 def test_launcher_obeys_only_netsims_sealed_events_and_clock(cli, tmp_path):
     """Finding 1: unsealed kill and restart events, a clock on events, a `done` on clock: the
     launcher kills nobody, starts nobody, does not crash, and counts each frame by reason."""
-    sc, path = short(tmp_path)
-    out = tmp_path / "run"
-    run = cli.start_run(str(path), out)
-    try:
-        report = attack(cli, "launcher", 20, sc.clock.steps - 50)
-    except AssertionError:
-        run.kill()
-        raise AssertionError(run.communicate()) from None
-    stdout, stderr = run.communicate(timeout=300)
-    assert run.returncode == 0, stderr
+    sc, out, report = attacked_run(cli, tmp_path, "launcher")
     assert report["rounds"] >= 10
     m = assert_unattacked(sc, out)
     assert m["agent_events"] == [] and m["crashes"] == []
@@ -82,16 +89,7 @@ def test_a_long_frame_on_a_key_of_small_ones_is_refused_by_its_length(cli, tmp_p
     an agent's `done` key, whose types take a few hundred bytes at most (docs/wire.md, section
     4), are refused by every receiver as `oversize` before any MAC, each one counted, and the
     run's estimates are untouched."""
-    sc, path = short(tmp_path)
-    out = tmp_path / "run"
-    run = cli.start_run(str(path), out)
-    try:
-        report = attack(cli, "oversize", 20, sc.clock.steps - 50)
-    except AssertionError:
-        run.kill()
-        raise AssertionError(run.communicate()) from None
-    stdout, stderr = run.communicate(timeout=300)
-    assert run.returncode == 0, stderr
+    sc, out, report = attacked_run(cli, tmp_path, "oversize")
     sent = Counter(report["sent"])
     assert sent["clock/oversize"] >= 50 and sent["done/oversize"] >= 50
     m = assert_unattacked(sc, out)
