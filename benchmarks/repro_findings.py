@@ -13,6 +13,16 @@ interquartile range, and in how many runs the paper's method beats its baseline 
 the points of a study share their seeds). Writes benchmarks/out_repro.md and one plot per study
 in docs/img/ (median and interquartile band against the swept parameter). Not a test. The
 Goel (EKF-CI) and Oliveros (EKF-CL) papers have theirs in benchmarks/repro_goel_oliveros.py.
+
+Beside the errors, the run's posterior Cramér-Rao bound (issue 24; docs/estimators.md): `PCRB`
+is the median over the runs of `pcrb_m`, the bound on the agents' position RMSE over the run
+(every agent, every tick counted; the same estimation problem for every estimator), and
+`RMSE/PCRB` the median of each run's `rmse_over_pcrb`, the estimator's `rmse_m` (the agents'
+position errors over the same cells) over that bound, with the pooled ratio
+sqrt(sum rmse^2 / sum pcrb^2) over the runs in brackets. Both are about the agents' own
+positions: neither is CSL-CTL's headline (the target's final error) nor dNBP's (only the UAVs
+without GPS). Studies run before the PCRB existed have no such columns, and the table leaves
+them out.
 """
 
 from __future__ import annotations
@@ -60,6 +70,11 @@ STUDIES = {
 # 10.38 m over its five rows) and Table 1's "error of 3 meters" with 300 samples.
 PAPER_LINES = {"csl-ctl": [(1.2316, "paper Table 4 median, CSL-CTL"), (10.3814, "paper Table 4 median, IL-CTL")],
                "dnbp": [(3.0, "paper Table 1: 3 m at M = 300")]}
+# The run's PCRB columns of results.csv (netsim/study/spec.py BOUND_COLUMNS): the bound on the
+# agents' position RMSE over the run, and each estimator's rmse_m over it.
+BOUND = ("pcrb_m", "rmse_over_pcrb")
+# `--target-bound`: the targets' final PCRB of each run, cached in the study's directory.
+TARGET_BOUND_FILE = "target_final_pcrb.csv"
 SHORT = {"world.formation.radius": "start distance (m)", "world.formation.spread_deg": "spread (deg)",
          "sensors.odometry.turn_rate_noise": "gyro std (rad/s)", "sensors.range.probability": "agent-range p",
          "sensors.target_range.noise": "target range std (m)", "radio.range_m": "R (m)",
@@ -79,7 +94,45 @@ def load(study: Path) -> tuple[list[str], list[dict]]:
     params = [p for p in info["params"] if not any(s.get("same_as") and s["param"] == p for s in info["spec"]["sweep"])]
     with open(study / "results.csv") as f:
         rows = [{k: num(v) if k not in ("estimator",) else v for k, v in r.items()} for r in csv.DictReader(f)]
+    tb = study / TARGET_BOUND_FILE
+    if tb.exists():  # `--target-bound`: the targets' final PCRB of each run, by (point, run)
+        with open(tb) as f:
+            final = {(int(r["point"]), int(r["run"])): num(r["target_final_pcrb_m"]) for r in csv.DictReader(f)}
+        for r in rows:
+            r["target_final_pcrb_m"] = final.get((int(r["point"]), int(r["run"])), math.nan)
     return params, rows
+
+
+def target_bounds(study: Path, spec_path: Path) -> None:
+    """Each run's target bound at the last tick, into study/target_final_pcrb.csv (once): the
+    study's runs are run again in process (a run depends only on its scenario and seed, so the
+    sensor stream is the study's) and their PCRB computed (swarmloc.experiment.results
+    .compute_bound); `target_final_pcrb_m` is the mean over the targets of each target's bound at
+    the last tick (sqrt of the trace of its 2 x 2 block), the bound on the RMS of
+    `target_final_error_m`. The study keeps only the agents' bound (`pcrb_m`), hence this."""
+    out = study / TARGET_BOUND_FILE
+    if out.exists() or not (study / "results.csv").exists():
+        return
+    from netsim.sim import Simulation
+    from netsim.study.spec import build_scenario, load_spec, plan
+    from swarmloc.estimators import make_nodes
+    from swarmloc.experiment.results import compute_bound
+    from swarmloc.experiment.runner import InProcessRunner
+
+    with open(study / "results.csv") as f:
+        done = sorted({(int(r["point"]), int(r["run"])) for r in csv.DictReader(f)})
+    pl = plan(load_spec(spec_path))
+    lines = ["point,run,seed,ticks,target_final_pcrb_m"]
+    for point, run in done:
+        task = pl.task(point, run)
+        sc = build_scenario(task["scenario"], task["source"], task["overrides"], task["seed"])
+        record = InProcessRunner(Simulation(sc), make_nodes(sc.estimator.name, sc)).run()
+        compute_bound(sc, record)
+        b = record.bound
+        v = float(np.nanmean(b.target_position[-1])) if b is not None and b.target_ids else math.nan
+        lines.append(f"{point},{run},{task['seed']},{len(record.k)},{v!r}")
+        print(f"{study.name}: point {point} run {run}: target's final PCRB {v:.3f} m", flush=True)
+    out.write_text("\n".join(lines) + "\n")
 
 
 def fmt(x: float, nd: int = 2) -> str:
@@ -110,9 +163,22 @@ def summarize(params: list[str], rows: list[dict], metric: str, pair: tuple[str,
             v = v[~np.isnan(v)]
             s[alg] = (float(np.median(v)), float(np.percentile(v, 25)), float(np.percentile(v, 75)), v.size) if v.size \
                 else (math.nan, math.nan, math.nan, 0)
-            for m in extra:
-                e = np.array([r[m] for r in runs.values()], float)
+            for m in (*extra, *BOUND):
+                e = np.array([r.get(m, math.nan) for r in runs.values()], float)
                 s[f"{alg}:{m}"] = float(np.nanmedian(e)) if (~np.isnan(e)).any() else math.nan
+            if metric == "target_final_error_m":  # the headline against the target's own bound
+                tb = np.array([r.get("target_final_pcrb_m", math.nan) for r in runs.values()], float)
+                te = np.array([r[metric] for r in runs.values()], float)
+                ok = np.isfinite(tb) & np.isfinite(te)
+                s[f"{alg}:tpcrb"] = float(np.median(tb[ok])) if ok.any() else math.nan
+                s[f"{alg}:tratio"] = float(np.median(te[ok] / tb[ok])) if ok.any() else math.nan
+                s[f"{alg}:tpooled"] = float(np.sqrt(np.sum(te[ok] ** 2) / np.sum(tb[ok] ** 2))) if ok.any() else math.nan
+            # The pooled ratio sqrt(sum rmse^2 / sum pcrb^2) over the runs: what a bound that
+            # holds keeps at 1 or more in expectation (one run can fall below it by chance).
+            p = np.array([r.get("pcrb_m", math.nan) for r in runs.values()], float)
+            e = p * np.array([r.get("rmse_over_pcrb", math.nan) for r in runs.values()], float)
+            ok = np.isfinite(p) & np.isfinite(e)
+            s[f"{alg}:pooled"] = float(np.sqrt(np.sum(e[ok] ** 2) / np.sum(p[ok] ** 2))) if ok.any() else math.nan
         common = sorted(set(by[pair[0]]) & set(by[pair[1]]))
         s["wins"] = sum(by[pair[0]][r][metric] < by[pair[1]][r][metric] for r in common)
         s["n"] = len(common)
@@ -120,10 +186,34 @@ def summarize(params: list[str], rows: list[dict], metric: str, pair: tuple[str,
     return out
 
 
-def table(name: str, params: list[str], summ: list[dict], metric: str, pair, extra) -> list[str]:
+def bound_columns(summ: list[dict], pair) -> tuple[list[str], list[str]] | None:
+    """The PCRB columns' headers and, per row, the keys of their values: one PCRB column when
+    both estimators' runs have the same bound (their cells are the same, as every estimator has
+    an estimate at every tick), one each otherwise; then each estimator's RMSE/PCRB. None when
+    no run has a bound (a study run before the PCRB existed)."""
+    a, b = pair
+    if all(math.isnan(s[f"{alg}:pcrb_m"]) for s in summ for alg in pair):
+        return None
+    same = all(math.isclose(s[f"{a}:pcrb_m"], s[f"{b}:pcrb_m"], rel_tol=1e-9)
+               or (math.isnan(s[f"{a}:pcrb_m"]) and math.isnan(s[f"{b}:pcrb_m"])) for s in summ)
+    head, keys = (["PCRB (m, median)"], [f"{a}:pcrb_m"]) if same else \
+        ([f"{alg} PCRB (m, median)" for alg in pair], [f"{alg}:pcrb_m" for alg in pair])
+    head += [f"{alg} RMSE/PCRB median (pooled)" for alg in pair]
+    keys += [(f"{alg}:rmse_over_pcrb", f"{alg}:pooled") for alg in pair]
+    return head, keys
+
+
+def table(name: str, params: list[str], summ: list[dict], metric: str, pair, extra, target: bool = False) -> list[str]:
+    """target: show the target's final bound (the study has its `--target-bound` file)."""
     a, b = pair
     head = [SHORT.get(p, p) for p in params] + [f"{a} median [IQR]", f"{b} median [IQR]", f"{a} better"]
+    target = target and metric == "target_final_error_m"
+    if target:
+        head += ["target PCRB, final (m, median)"] + [f"{alg} final target error / PCRB median (pooled)" for alg in pair]
     head += [f"{alg} {m} (median)" for m in extra for alg in pair]
+    bound = bound_columns(summ, pair)
+    if bound:
+        head += bound[0]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for s in summ:
         cells = [fmt(s[p], 4).rstrip("0").rstrip(".") if isinstance(s[p], float) else str(s[p]) for p in params]
@@ -131,7 +221,11 @@ def table(name: str, params: list[str], summ: list[dict], metric: str, pair, ext
             med, q1, q3, _ = s[alg]
             cells.append(f"{fmt(med)} [{fmt(q1)}, {fmt(q3)}]")
         cells.append(f"{s['wins']}/{s['n']}")
+        if target:
+            cells += [fmt(s[f"{a}:tpcrb"])] + [f"{fmt(s[f'{alg}:tratio'])} ({fmt(s[f'{alg}:tpooled'])})" for alg in pair]
         cells += [fmt(s[f"{alg}:{m}"]) for m in extra for alg in pair]
+        if bound:
+            cells += [fmt(s[k]) if isinstance(k, str) else f"{fmt(s[k[0]])} ({fmt(s[k[1]])})" for k in bound[1]]
         lines.append("| " + " | ".join(cells) + " |")
     return lines
 
@@ -175,12 +269,35 @@ def main() -> None:
     ap.add_argument("--studies", type=Path, default=ROOT / "studies", help="where the studies' output directories are")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "out_repro.md")
     ap.add_argument("--fig-dir", type=Path, default=ROOT / "docs" / "img")
+    ap.add_argument("--target-bound", nargs="*", metavar="STUDY",
+                    help="CSL-CTL studies (these, or with no name all of them): run each run again in process for its "
+                         f"target's final PCRB (cached in the study's directory, {TARGET_BOUND_FILE}) and show it beside "
+                         "the final target error; a study with that file shows it without the option")
     a = ap.parse_args()
+    if a.target_bound is not None:
+        for name, (metric, *_rest) in STUDIES.items():
+            if metric == "target_final_error_m" and (not a.target_bound or name in a.target_bound):
+                target_bounds(a.studies / name, ROOT / "benchmarks" / "studies" / f"{name}.yaml")
+    given = ("" if a.studies == ap.get_default("studies") else f" --studies {a.studies}") + \
+        ("" if a.target_bound is None else " --target-bound" + "".join(f" {n}" for n in a.target_bound))
+    into = "" if a.studies == ap.get_default("studies") else f" -o {a.studies}/NAME"
     md = ["## CSL-CTL and dNBP from the papers' own setups", "",
-          "Made by `python benchmarks/repro_findings.py` from the finished studies "
-          "(`swarmloc study benchmarks/studies/NAME.yaml`, 10 runs per point). Medians over the runs, "
+          f"Made by `python benchmarks/repro_findings.py{given}` from the finished studies "
+          f"(`swarmloc study benchmarks/studies/NAME.yaml{into}`, 10 runs per point). Medians over the runs, "
           "interquartile range in brackets; 'better' counts the runs (same seed) in which the paper's method "
-          "has the lower headline error.", ""]
+          "has the lower headline error. PCRB: the median over the runs of the posterior Cramér-Rao bound on the "
+          "agents' position RMSE over the run (`pcrb_m`: every agent, every tick; the same problem for every "
+          "estimator); RMSE/PCRB: the median of each run's `rmse_over_pcrb`, the estimator's position RMSE over "
+          "all agents and ticks (`rmse_m`) divided by that bound, and in brackets the pooled ratio "
+          "sqrt(sum rmse^2 / sum pcrb^2) over the runs. Both are about the agents' own positions, not "
+          "the headline (CSL-CTL: the target's final error; dNBP: the UAVs without GPS only). A pooled ratio "
+          "below 1 is impossible for a bound that holds (one run can fall below it by chance); where the "
+          "linearisation at truth fails it is no bound (docs/estimators.md, the PCRB's assumptions)."
+          + (" Target PCRB, final (`--target-bound`, CSL-CTL): the median over the runs of the target's own bound "
+             "at the last tick, the bound on the RMS of the final target error, from the same runs run again in "
+             "process; then each estimator's final target error over it, the median of the per-run ratio and the "
+             "pooled ratio in brackets; in the tables of the studies it was computed for."
+             if any((a.studies / n / TARGET_BOUND_FILE).exists() for n in STUDIES) else ""), ""]
     for name, (metric, pair, _, extra, title, base) in STUDIES.items():
         study = a.studies / name
         if not (study / "results.csv").exists():
@@ -191,7 +308,7 @@ def main() -> None:
         summ = summarize(params, rows, metric, pair, extra)
         also = f" and `{base[0]}` (the scenario's value)" if base else ""
         md += [f"### {name}: {title}", "", f"`swarmloc study benchmarks/studies/{name}.yaml`{also}; headline `{metric}`.", ""]
-        md += table(name, params, summ, metric, pair, extra) + [""]
+        md += table(name, params, summ, metric, pair, extra, (study / TARGET_BOUND_FILE).exists()) + [""]
         if params:
             plot(name, params, summ, metric, pair, title, a.fig_dir / f"{name}.png")
             md += [f"Plot: `docs/img/{name}.png`.", ""]

@@ -14,6 +14,16 @@ so). The CSL-CTL and dNBP papers have theirs in benchmarks/repro_findings.py.
 Per point and estimator: the median of each metric over the runs and its quartiles; for a
 comparison of two estimators or two settings on the same seeds (common random numbers), the
 median of the per-seed ratio and in how many seeds it is below 1.
+
+Beside the errors, the run's posterior Cramér-Rao bound (issue 24; docs/estimators.md), where
+the runs have it: `pcrb_m`, the bound on the position RMSE of every node over every tick counted
+(after the study's settle), and `rmse_over_pcrb`, the estimator's `rmse_m` over the same cells
+divided by it; their medians and quartiles, and the pooled ratio sqrt(sum rmse^2 / sum pcrb^2)
+over the runs (what a bound that holds keeps at 1 or more). For a study with per-agent columns
+(`agents:` in its spec) whose metrics include an agent's position error (`a2_mean_error_m`),
+that agent's own bound too (`a2_pcrb_m`, `a2_rmse_over_pcrb`). The bound is about position
+errors: it says nothing about a jitter or a tracking error, and `no_gnss_*` columns (the nodes
+without GNSS only) have none of their own.
 """
 
 from __future__ import annotations
@@ -136,16 +146,44 @@ def groups(params: list[str], rows: list[dict]) -> dict:
     return out
 
 
+def bounds_of(metrics: list[str], rows: list[dict]) -> list[str]:
+    """The bound's prefixes shown beside `metrics`: "" (the whole swarm's `pcrb_m`) when the runs
+    have it, and "a<id>_" for each agent whose position error is among the metrics and whose
+    bound the runs have. [] for a study run before the PCRB existed."""
+    have = rows[0].keys() if rows else ()
+    out = [""] if "pcrb_m" in have and any(r["pcrb_m"] not in ("", None) for r in rows) else []
+    for m in metrics:
+        head, _, rest = m.partition("_")
+        if head[:1] == "a" and head[1:].isdigit() and rest in ("mean_error_m", "rmse_m", "max_error_m") \
+                and f"{head}_pcrb_m" in have and f"{head}_" not in out:
+            out.append(f"{head}_")
+    return out
+
+
+def pooled(rs: list[dict], prefix: str) -> float:
+    """sqrt(sum rmse^2 / sum pcrb^2) over the runs: the ratio a bound that holds keeps >= 1 in
+    expectation (one run's can fall below it by chance)."""
+    p = np.array([num(r.get(f"{prefix}pcrb_m", "")) for r in rs])
+    e = p * np.array([num(r.get(f"{prefix}rmse_over_pcrb", "")) for r in rs])
+    ok = np.isfinite(p) & np.isfinite(e)
+    return float(np.sqrt(np.sum(e[ok] ** 2) / np.sum(p[ok] ** 2))) if ok.any() else float("nan")
+
+
 def table(name: str, params: list[str], rows: list[dict], metrics: list[str]) -> list[str]:
     values = {p: list(dict.fromkeys(r[p] for r in rows)) for p in params}
-    head = [*params, "estimator", *[f"{m} median [q1, q3]" for m in metrics], "runs"]
+    bounds = bounds_of(metrics, rows)
+    cols = [*metrics, *[f"{b}{c}" for b in bounds for c in ("pcrb_m", "rmse_over_pcrb")]]
+    head = [*params, "estimator", *[f"{m} median [q1, q3]" for m in cols],
+            *[f"{b}rmse_over_pcrb pooled" for b in bounds], "runs"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for key, rs in groups(params, rows).items():
         cells = [label(p, v, values[p]) for p, v in zip(params, key[:-1])] + [key[-1]]
         n = 0
-        for m in metrics:
-            med, q1, q3, n = quartiles([num(r.get(m, "")) for r in rs])
+        for i, m in enumerate(cols):
+            med, q1, q3, k = quartiles([num(r.get(m, "")) for r in rs])
+            n = k if i < len(metrics) else n
             cells.append(f"{fmt(med)} [{fmt(q1)}, {fmt(q3)}]")
+        cells += [fmt(pooled(rs, b)) for b in bounds]
         lines.append("| " + " | ".join(cells) + f" | {n} |")
     return lines
 
@@ -231,10 +269,20 @@ def main() -> None:
     ap.add_argument("--img", type=Path, default=ROOT / "docs" / "img")
     args = ap.parse_args()
     args.img.mkdir(parents=True, exist_ok=True)
+    given = "" if args.studies == ap.get_default("studies") else f" --studies {args.studies}"
+    into = "" if args.studies == ap.get_default("studies") else f" -o {args.studies}/<name>"
     lines = ["# Goel et al. 2016 and Oliveros & Ashrafiuon 2023 from their own setups", "",
-             "From the studies of benchmarks/studies/ (`swarmloc study benchmarks/studies/<name>.yaml`), by "
-             "`python benchmarks/repro_goel_oliveros.py`. Medians over the runs with the quartiles; ratios "
-             "are per seed (the points share their seeds).", ""]
+             f"From the studies of benchmarks/studies/ (`swarmloc study benchmarks/studies/<name>.yaml{into}`), by "
+             f"`python benchmarks/repro_goel_oliveros.py{given}`. Medians over the runs with the quartiles; ratios "
+             "are per seed (the points share their seeds).", "",
+             "The bound (issue 24): `pcrb_m` is the run's posterior Cramér-Rao bound on the position RMSE of every "
+             "node over every tick counted (the same ticks as the errors); `rmse_over_pcrb` is the estimator's "
+             "`rmse_m` (every node, those ticks) over it, and `pooled` is sqrt(sum rmse^2 / sum pcrb^2) over the "
+             "runs, which a bound that holds keeps at 1 or more (one run can fall below it by chance). `a2_pcrb_m`, "
+             "`a2_rmse_over_pcrb`: the same for UAS 2 alone. The bound is the same for every estimator of a run "
+             "(its cells aside); in a closed loop (Oliveros section 6.3) each estimator's runs fly their own "
+             "trajectories and have their own. It says nothing about the `no_gnss_*` columns in particular (they "
+             "are the nodes without GNSS only), a jitter or a tracking error.", ""]
     for name, (what, metrics, fig) in STUDIES.items():
         d = args.studies / name
         if not (d / "results.csv").exists():
