@@ -43,27 +43,10 @@ from bench_scale import ClockWatch, free_port, leftovers, log, stop  # benchmark
 from machine import code_version, cpu_model  # benchmarks/machine.py
 
 from swarmloc.experiment import scenario as S
+from swarmloc.process import process_tree
 
 ROOT = Path(__file__).resolve().parent.parent
 MEMORY_MB, START_S = 6 * 1024, 20.0  # issue 29's limits
-
-
-def tree(pid: int) -> list[int]:
-    """pid and all its descendants, from /proc."""
-    parent: dict[int, list[int]] = {}
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
-            except (OSError, ValueError, IndexError):
-                continue
-            parent.setdefault(ppid, []).append(int(d.name))
-    out, todo = [], [pid]
-    while todo:
-        p = todo.pop()
-        out.append(p)
-        todo.extend(parent.get(p, []))
-    return out
 
 
 class Clock(ClockWatch):
@@ -114,7 +97,7 @@ def measure(scenario: Path, steps: int, dt: float, k: int, tmp: Path, timeout: f
     try:
         while launcher.poll() is None and time.perf_counter() - started < timeout:
             clock.try_connect()
-            pids = tree(launcher.pid)
+            pids = process_tree(launcher.pid)
             mb = sum(rss_kb(p) or 0 for p in pids) / 1024
             samples.append(mb)
             for p_ in pids:

@@ -61,13 +61,16 @@ def _unit(v) -> np.ndarray:
     return v / n if n > 0 else np.eye(len(v))[0]
 
 
+def _shifted(m, field: str, size: float):
+    """m with the first element of its array `field` SIZE larger (a position: along +x)."""
+    v = getattr(m, field).copy()
+    v[0] += size
+    return _replace(m, **{field: v})
+
+
 def lie_range(m, size):
     """A UKF-DCL range start SIZE m longer."""
-    if not isinstance(m, DclStart) or m.key[1] != 0:
-        return m
-    z = m.z.copy()
-    z[0] += size
-    return _replace(m, z=z)
+    return m if not isinstance(m, DclStart) or m.key[1] != 0 else _shifted(m, "z", size)
 
 
 def lie_scale(m, size):
@@ -91,38 +94,22 @@ def lie_nu(kind):
 
 def lie_request_x(m, size):
     """RDL: the liar's own position in its request SIZE m off (along +x)."""
-    if not isinstance(m, RdlRequest):
-        return m
-    x = m.x.copy()
-    x[0] += size
-    return _replace(m, x=x)
+    return m if not isinstance(m, RdlRequest) else _shifted(m, "x", size)
 
 
 def lie_commit_x(m, size):
     """RDL: the receiver's posterior position in the liar's commit SIZE m off (along +x)."""
-    if not isinstance(m, RdlCommit) or m.status != 0:
-        return m
-    x = m.x.copy()
-    x[0] += size
-    return _replace(m, x=x)
+    return m if not isinstance(m, RdlCommit) or m.status != 0 else _shifted(m, "x", size)
 
 
 def lie_beacon(m, size):
     """EKF-CI: the liar's position in its beacon SIZE m off (along +x)."""
-    if not isinstance(m, Beacon):
-        return m
-    p = m.position.copy()
-    p[0] += size
-    return _replace(m, position=p)
+    return m if not isinstance(m, Beacon) else _shifted(m, "position", size)
 
 
 def lie_pose(m, size):
     """Vehicles (ekf-ci, ekf-local): the liar's position in its pose SIZE m off (along +x)."""
-    if not isinstance(m, VehiclePose):
-        return m
-    x = m.x.copy()
-    x[0] += size
-    return _replace(m, x=x)
+    return m if not isinstance(m, VehiclePose) else _shifted(m, "x", size)
 
 
 def lie_centre_data(m, size):
@@ -140,11 +127,7 @@ def lie_centre_data(m, size):
 
 def lie_centre_estimate(m, size):
     """ekf-cl: the centre's (the liar's) estimate for a vehicle SIZE m off."""
-    if not isinstance(m, CentreEstimate):
-        return m
-    x = m.x.copy()
-    x[0] += size
-    return _replace(m, x=x)
+    return m if not isinstance(m, CentreEstimate) else _shifted(m, "x", size)
 
 
 def lie_share(m, size):

@@ -83,3 +83,24 @@ def console(stderr: bool = False):
 
     c = Console(stderr=stderr)
     return c if c.is_terminal else Console(stderr=stderr, width=PIPE_WIDTH, soft_wrap=True)
+
+
+def process_tree(pid: int) -> list[int]:
+    """pid and all its descendants, from /proc (Linux): what a run started, for the benchmarks'
+    and tests' memory and CPU figures of a whole swarm."""
+    from pathlib import Path
+
+    children: dict[int, list[int]] = {}
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, ValueError, IndexError):  # gone meanwhile, or not readable
+                continue
+            children.setdefault(ppid, []).append(int(d.name))
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        todo.extend(children.get(p, []))
+    return out

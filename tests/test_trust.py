@@ -39,13 +39,18 @@ def attack(cli, name: str, first: int, last: int, *args, timeout: float = 200) -
     return json.loads(p.stdout)
 
 
-def attacked_run(cli, tmp_path, name: str, *args, first: int = 20, margin: int = 50):
+def attacked_run(cli, tmp_path, name: str, *args, first: int = 20, margin: int = 50, member: bool = False):
     """A short wang2019 run attacked by tests/attacker.py's `name` from tick `first` to `margin`
-    ticks before its end; (scenario, run directory, the attacker's report) once it ended well."""
+    ticks before its end; (scenario, run directory, the attacker's report) once it ended well.
+    member: the attacker is handed the run's key directory (it takes agent 2's keys from it),
+    once the run has made it."""
     sc, path = short(tmp_path)
     out = tmp_path / "run"
     run = cli.start_run(str(path), out)
     try:
+        if member:
+            cli.wait_tick(5, run, timeout=240)
+            args = (out / "logs" / "keys", *args)
         report = attack(cli, name, first, sc.clock.steps - margin, *args)
     except AssertionError:
         run.kill()
@@ -190,13 +195,7 @@ def test_no_single_frame_locks_its_sender_out(cli, tmp_path):
     days ahead carry agent 2's signature and are refused (bad-signature, finding 10); agent 2's
     own with counters that far ahead are refused (from-the-future). Nothing changes: the run is
     bit for bit the unattacked one, netsim's and agent 2's own frames still count."""
-    sc, path = short(tmp_path)
-    out = tmp_path / "run"
-    run = cli.start_run(str(path), out)
-    cli.wait_tick(5, run, timeout=240)
-    report = attack(cli, "lockout", 20, sc.clock.steps - 50, out / "logs" / "keys")
-    stdout, stderr = run.communicate(timeout=300)
-    assert run.returncode == 0, stderr
+    sc, out, report = attacked_run(cli, tmp_path, "lockout", member=True)
     assert report["rounds"] >= 10
     m = assert_unattacked(sc, out)
     sent = Counter(report["sent"])
@@ -280,13 +279,7 @@ def test_no_member_can_speak_as_another_member_or_as_netsim(cli, tmp_path):
     netsim, netsim's sensor frames for agent 1, deliveries to agent 1 under the next number and
     one 32,000 ahead (the lock-out of the issue), and agent 2's own frame on agent 3's key: all
     refused and counted by reason, and the run is bit for bit the unattacked one."""
-    sc, path = short(tmp_path)
-    out = tmp_path / "run"
-    run = cli.start_run(str(path), out)
-    cli.wait_tick(5, run, timeout=240)
-    report = attack(cli, "forge", 20, sc.clock.steps - 50, out / "logs" / "keys")
-    stdout, stderr = run.communicate(timeout=300)
-    assert run.returncode == 0, stderr
+    sc, out, report = attacked_run(cli, tmp_path, "forge", member=True)
     assert report["rounds"] >= 10
     m = assert_unattacked(sc, out)
     sent = Counter(report["sent"])
