@@ -15,6 +15,7 @@ As in the agent daemon, Zenoh callbacks only enqueue; one loop does the work.
 
 from __future__ import annotations
 
+import json
 import logging
 import queue
 import time
@@ -665,6 +666,18 @@ class NetsimServer:
         self.record.add_tick(k, t, frames, truth, targets)
         return k
 
+    def _write_layout(self) -> str:
+        """The Foxglove layout beside run.mcap, framed on every position the run's platforms,
+        landmarks and targets took."""
+        from swarmloc.experiment.recording import LAYOUT, layout
+
+        pts = [self.record.truth_array()[:, :, :2].reshape(-1, 2)] if self.record.truth else []
+        pts += [np.asarray(m.position, float)[:2].reshape(1, 2) for m in self.sc.world.landmarks]
+        pts += [np.asarray(x, float)[:, :2].reshape(-1, 2) for x in self.record.target_truth]
+        path = self.cfg.record.with_name(LAYOUT)
+        path.write_text(json.dumps(layout(np.concatenate(pts) if pts else np.zeros((0, 2))), indent=2) + "\n")
+        return path.name
+
     def _record_faults(self) -> None:
         log_ = self.sim.fault_log
         if len(log_) > self._faults_seen:
@@ -782,6 +795,8 @@ class NetsimServer:
             extra["recording"] = {"frames": self.recorder.frames, **({"file": self.cfg.record.name}
                                                                      if self.cfg.record is not None else {})}
             self.recorder.close()  # everything on disk before the slower run directory
+            if self.cfg.record is not None:
+                extra["recording"]["layout"] = self._write_layout()
         if self.ros2 is not None:
             extra["ros2"] = {"published": self.ros2.published, "skipped": self.ros2.skipped}
         algorithms = REGISTRY.order({self.sc.estimator.name, *self.sc.reference_names, *self.record.est})

@@ -181,6 +181,10 @@ def test_swarmloc_rerun_over_agent_processes_is_bit_for_bit(cli, tmp_path):
     again = metrics(rebuilt, list(m1["estimators"]))
     assert again["estimators"] == m1["estimators"]
     assert m1["recording"]["frames"] > 0 and not run.truncated
+    # The Foxglove layout beside it frames every position the platforms took.
+    assert m1["recording"]["layout"] == R.LAYOUT
+    cam = json.loads((tmp_path / "r1" / R.LAYOUT).read_text())["configById"]["3D!swarmloc"]["cameraState"]
+    assert _framed(cam, rebuilt.truth_array()[:, :, :2].reshape(-1, 2))
     cli.run("rerun", "r1/run.mcap", "--estimator", "il", "--out", "r3", "--port", "0", "--swarm", cli.swarm + "c",
             "--no-plots", check=True)
     il_agents = np.load(tmp_path / "r3/estimates/il.npz")
@@ -313,3 +317,38 @@ def test_netsims_deferred_recording_writes_what_an_immediate_one_writes(tmp_path
 
     now, held = write(tmp_path / "now.mcap", False), write(tmp_path / "held.mcap", True)
     assert len(now) > 250 and now == held
+
+
+def _framed(cam: dict, xy) -> bool:
+    """Every point of `xy` inside what a layout's top-down 3D camera sees (its half-height at its
+    distance, and LAYOUT_ASPECT times that across)."""
+    import math
+
+    half_h = cam["distance"] * math.tan(math.radians(cam["fovy"] / 2))
+    d = np.abs(np.asarray(xy, float) - np.asarray(cam["targetOffset"][:2]))
+    return bool((d[:, 0] <= half_h * R.LAYOUT_ASPECT).all() and (d[:, 1] <= half_h).all())
+
+
+def test_the_foxglove_layout_frames_the_run_from_above_with_its_scene_on():
+    """`layout`: Foxglove's (and Lichtblick's) import format, a 3D panel with /scene and
+    /scene/static switched on (off by default there), looking straight down, x east to the
+    right, framed on every point with a margin and no more; the log panel on /faults."""
+    import math
+
+    r = np.random.default_rng(5)
+    for xy in (r.uniform([-300, 40], [500, 90], (200, 2)), r.uniform([0, -800], [30, 900], (200, 2)),
+               np.array([[12.0, -3.0]]), np.array([[np.nan, np.nan], [0.0, 0.0], [4.0, 1.0]])):
+        lay = R.layout(xy)
+        panel = lay["configById"]["3D!swarmloc"]
+        cam = panel["cameraState"]
+        assert panel["topics"] == {R.SCENE: {"visible": True}, R.STATIC: {"visible": True}}
+        assert cam["phi"] < 1 and cam["thetaOffset"] == 0 and cam["perspective"] and panel["followTf"] == "map"
+        assert _framed(cam, xy[np.isfinite(xy).all(axis=1)])
+        assert cam["far"] > cam["distance"]
+        # Tight: along one axis the view is the points' extent (at least 10 m) with only the margin.
+        seen = cam["distance"] * math.tan(math.radians(cam["fovy"] / 2)) * np.array([R.LAYOUT_ASPECT, 1.0])
+        needed = np.maximum(np.ptp(xy[np.isfinite(xy).all(axis=1)], axis=0) / 2, 5.0)
+        assert (seen / needed).min() <= R.LAYOUT_MARGIN * 1.001
+        assert lay["configById"]["RosOut!swarmloc"]["topicToRender"] == R.FAULTS
+        assert lay["layout"]["first"] == "3D!swarmloc" and lay["layout"]["second"] == "RosOut!swarmloc"
+        assert json.loads(json.dumps(lay)) == lay  # plain JSON

@@ -438,6 +438,47 @@ class Recorder:
             self.writer = None
 
 
+LAYOUT = "foxglove-layout.json"  # written beside run.mcap (docs/run-format.md, "The layout")
+LAYOUT_MARGIN = 1.15  # the framed box's half-sizes times this, so nothing sits on the panel's edge
+LAYOUT_ASPECT = 1.3  # the 3D panel's width over its height that the framing assumes (70 % of a wide window)
+
+
+def layout(xy: np.ndarray) -> dict:
+    """A layout for Foxglove (and Lichtblick, its open-source fork), the JSON their "Import
+    layout" reads: a 3D panel that shows /scene and /scene/static, seen from straight above with
+    x east to the right, framed on the points `xy` ((n, 2): every position the run's platforms,
+    landmarks and targets took), beside a log panel of /faults. Their 3D panel draws a
+    SceneUpdate topic only once it is switched on and starts 20 m from the origin at an angle:
+    without this file a user makes those settings by hand (docs/run-format.md)."""
+    xy = np.asarray(xy, float).reshape(-1, 2)
+    xy = xy[np.isfinite(xy).all(axis=1)]
+    lo, hi = (xy.min(axis=0), xy.max(axis=0)) if len(xy) else (np.zeros(2), np.zeros(2))
+    centre, half = (lo + hi) / 2, np.maximum((hi - lo) / 2, 5.0) * LAYOUT_MARGIN
+    fovy = 45.0
+    # A perspective camera at `distance` sees a half-height of distance * tan(fovy / 2).
+    distance = max(half[1], half[0] / LAYOUT_ASPECT) / math.tan(math.radians(fovy / 2))
+    three_d, log_panel = "3D!swarmloc", "RosOut!swarmloc"  # "RosOut": the log panel's type
+    return {
+        "configById": {
+            three_d: {
+                "cameraState": {"distance": round(distance, 2), "perspective": True, "phi": 0.1,
+                                "target": [0, 0, 0], "targetOffset": [round(float(centre[0]), 2),
+                                                                      round(float(centre[1]), 2), 0],
+                                "targetOrientation": [0, 0, 0, 1], "thetaOffset": 0, "fovy": fovy, "near": 0.5,
+                                "far": max(5000.0, round(4 * distance, 1))},
+                "followMode": "follow-none", "followTf": "map", "scene": {}, "transforms": {},
+                "topics": {SCENE: {"visible": True}, STATIC: {"visible": True}},
+                "layers": {}, "publish": {}, "imageMode": {},
+            },
+            log_panel: {"searchTerms": [], "minLogLevel": 1, "topicToRender": FAULTS},
+        },
+        "globalVariables": {},
+        "userNodes": {},
+        "playbackConfig": {"speed": 1.0},
+        "layout": {"first": three_d, "second": log_panel, "direction": "row", "splitPercentage": 70},
+    }
+
+
 def _compact(v) -> str:
     return json.dumps(v, separators=(",", ":")) if isinstance(v, (list, dict)) else str(v)
 
