@@ -675,7 +675,8 @@ class NetsimServer:
         pts += [np.asarray(m.position, float)[:2].reshape(1, 2) for m in self.sc.world.landmarks]
         pts += [np.asarray(x, float)[:, :2].reshape(-1, 2) for x in self.record.target_truth]
         path = self.cfg.record.with_name(LAYOUT)
-        path.write_text(json.dumps(layout(np.concatenate(pts) if pts else np.zeros((0, 2))), indent=2) + "\n")
+        path.write_text(json.dumps(layout(np.concatenate(pts) if pts else np.zeros((0, 2)), self.sc.estimator.name,
+                                          self.sc.localized_ids), indent=2) + "\n")
         return path.name
 
     def _record_faults(self) -> None:

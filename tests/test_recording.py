@@ -183,8 +183,11 @@ def test_swarmloc_rerun_over_agent_processes_is_bit_for_bit(cli, tmp_path):
     assert m1["recording"]["frames"] > 0 and not run.truncated
     # The Foxglove layout beside it frames every position the platforms took.
     assert m1["recording"]["layout"] == R.LAYOUT
-    cam = json.loads((tmp_path / "r1" / R.LAYOUT).read_text())["configById"]["3D!swarmloc"]["cameraState"]
-    assert _framed(cam, rebuilt.truth_array()[:, :, :2].reshape(-1, 2))
+    lay = json.loads((tmp_path / "r1" / R.LAYOUT).read_text())
+    assert _framed(lay["configById"]["3D!swarmloc"]["cameraState"], rebuilt.truth_array()[:, :, :2].reshape(-1, 2))
+    plotted = {p["value"].rsplit(".", 1)[0] for p in lay["configById"]["Plot!swarmloc"]["paths"]}
+    assert plotted == {R.metrics_topic("ukf-dcl", a) for a in sc.localized_ids}
+    assert plotted <= {m.topic for m in R.messages(tmp_path / "r1/run.mcap")}  # series the file has
     cli.run("rerun", "r1/run.mcap", "--estimator", "il", "--out", "r3", "--port", "0", "--swarm", cli.swarm + "c",
             "--no-plots", check=True)
     il_agents = np.load(tmp_path / "r3/estimates/il.npz")
@@ -332,7 +335,8 @@ def _framed(cam: dict, xy) -> bool:
 def test_the_foxglove_layout_frames_the_run_from_above_with_its_scene_on():
     """`layout`: Foxglove's (and Lichtblick's) import format, a 3D panel with /scene and
     /scene/static switched on (off by default there), looking straight down, x east to the
-    right, framed on every point with a margin and no more; the log panel on /faults."""
+    right, framed on every point with a margin and no more; the log panel on /faults; with the
+    agents' estimator, a plot of its error (the /metrics series' `error_m`) per agent."""
     import math
 
     r = np.random.default_rng(5)
@@ -352,3 +356,9 @@ def test_the_foxglove_layout_frames_the_run_from_above_with_its_scene_on():
         assert lay["configById"]["RosOut!swarmloc"]["topicToRender"] == R.FAULTS
         assert lay["layout"]["first"] == "3D!swarmloc" and lay["layout"]["second"] == "RosOut!swarmloc"
         assert json.loads(json.dumps(lay)) == lay  # plain JSON
+    # With the agents' estimator: its error plotted for the first 8 agents, under the log.
+    lay = R.layout(np.zeros((1, 2)), "ukf-dcl", [12, 3, 5, 1, 2, 4, 6, 7, 8, 9])
+    paths = lay["configById"]["Plot!swarmloc"]["paths"]
+    assert [p["value"] for p in paths] == [f"{R.metrics_topic('ukf-dcl', a)}.error_m" for a in (1, 2, 3, 4, 5, 6, 7, 8)]
+    assert lay["layout"]["second"] == {"first": "RosOut!swarmloc", "second": "Plot!swarmloc", "direction": "column",
+                                       "splitPercentage": 40}

@@ -443,13 +443,17 @@ LAYOUT_MARGIN = 1.15  # the framed box's half-sizes times this, so nothing sits 
 LAYOUT_ASPECT = 1.3  # the 3D panel's width over its height that the framing assumes (70 % of a wide window)
 
 
-def layout(xy: np.ndarray) -> dict:
+LAYOUT_PLOTTED = 8  # agents whose error the layout's plot draws (the first, by id)
+
+
+def layout(xy: np.ndarray, algorithm: str | None = None, agents: list[int] = ()) -> dict:
     """A layout for Foxglove (and Lichtblick, its open-source fork), the JSON their "Import
     layout" reads: a 3D panel that shows /scene and /scene/static, seen from straight above with
     x east to the right, framed on the points `xy` ((n, 2): every position the run's platforms,
-    landmarks and targets took), beside a log panel of /faults. Their 3D panel draws a
-    SceneUpdate topic only once it is switched on and starts 20 m from the origin at an angle:
-    without this file a user makes those settings by hand (docs/run-format.md)."""
+    landmarks and targets took), beside a log panel of /faults over a plot of `algorithm`'s
+    position error for the first LAYOUT_PLOTTED of `agents` (their /metrics series). Their 3D
+    panel draws a SceneUpdate topic only once it is switched on and starts 20 m from the origin
+    at an angle: without this file a user makes those settings by hand (docs/run-format.md)."""
     xy = np.asarray(xy, float).reshape(-1, 2)
     xy = xy[np.isfinite(xy).all(axis=1)]
     lo, hi = (xy.min(axis=0), xy.max(axis=0)) if len(xy) else (np.zeros(2), np.zeros(2))
@@ -457,7 +461,9 @@ def layout(xy: np.ndarray) -> dict:
     fovy = 45.0
     # A perspective camera at `distance` sees a half-height of distance * tan(fovy / 2).
     distance = max(half[1], half[0] / LAYOUT_ASPECT) / math.tan(math.radians(fovy / 2))
-    three_d, log_panel = "3D!swarmloc", "RosOut!swarmloc"  # "RosOut": the log panel's type
+    three_d, log_panel, plot = "3D!swarmloc", "RosOut!swarmloc", "Plot!swarmloc"  # "RosOut": the log panel's type
+    plotted = sorted(agents)[:LAYOUT_PLOTTED] if algorithm else []
+    right = {"first": log_panel, "second": plot, "direction": "column", "splitPercentage": 40} if plotted else log_panel
     return {
         "configById": {
             three_d: {
@@ -471,11 +477,17 @@ def layout(xy: np.ndarray) -> dict:
                 "layers": {}, "publish": {}, "imageMode": {},
             },
             log_panel: {"searchTerms": [], "minLogLevel": 1, "topicToRender": FAULTS},
+            **({plot: {"paths": [{"value": f"{metrics_topic(algorithm, a)}.error_m", "enabled": True,
+                                  "timestampMethod": "receiveTime", "label": f"A{a}"} for a in plotted],
+                       "showXAxisLabels": True, "showYAxisLabels": True, "showLegend": True,
+                       "legendDisplay": "floating", "showPlotValuesInLegend": False, "isSynced": True,
+                       "xAxisVal": "timestamp", "sidebarDimension": 240,
+                       "foxglovePanelTitle": f"{algorithm}: position error (m)"}} if plotted else {}),
         },
         "globalVariables": {},
         "userNodes": {},
         "playbackConfig": {"speed": 1.0},
-        "layout": {"first": three_d, "second": log_panel, "direction": "row", "splitPercentage": 70},
+        "layout": {"first": three_d, "second": right, "direction": "row", "splitPercentage": 70},
     }
 
 
