@@ -213,6 +213,8 @@ class NetsimServer:
                 "mode": self.mode, "dt": self.sc.clock.dt, "agents": self.ids}
         # Deferred: its work is done while the loop waits (`_pump`), off lockstep's critical path.
         self.recorder = Recorder(self.cfg.record, meta, self.sc, deferred=True)
+        if self.cfg.record is not None:
+            self._write_layout()  # for a live viewer, on the start; the run's end frames the whole run
         if self.cfg.view_port is not None:
             import foxglove
 
@@ -668,12 +670,18 @@ class NetsimServer:
 
     def _write_layout(self) -> str:
         """The Foxglove layout beside run.mcap, framed on every position the run's platforms,
-        landmarks and targets took."""
+        landmarks and targets took; before tick 0 (for a live viewer, replaced when the run
+        ends), on where they start."""
         from swarmloc.experiment.recording import LAYOUT, layout
 
-        pts = [self.record.truth_array()[:, :, :2].reshape(-1, 2)] if self.record.truth else []
-        pts += [np.asarray(m.position, float)[:2].reshape(1, 2) for m in self.sc.world.landmarks]
-        pts += [np.asarray(x, float)[:, :2].reshape(-1, 2) for x in self.record.target_truth]
+        world = self.sc.world
+        pts = [np.asarray(m.position, float)[:2].reshape(1, 2) for m in world.landmarks]
+        if self.record.truth:
+            pts += [self.record.truth_array()[:, :, :2].reshape(-1, 2)]
+            pts += [np.asarray(x, float)[:, :2].reshape(-1, 2) for x in self.record.target_truth]
+        else:
+            pts += [np.asarray(a.start, float)[:2].reshape(1, 2) for a in world.agents]
+            pts += [np.asarray(o.position, float)[:2].reshape(1, 2) for o in world.targets]
         path = self.cfg.record.with_name(LAYOUT)
         path.write_text(json.dumps(layout(np.concatenate(pts) if pts else np.zeros((0, 2)), self.sc.estimator.name,
                                           self.sc.localized_ids), indent=2) + "\n")

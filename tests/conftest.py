@@ -199,3 +199,17 @@ def require_spare_cores(need: float, why: str) -> float:
     if have < need:
         pytest.skip(f"needs {need:.1f} spare cores, the machine gives {have:.2f} now: {why}")
     return have
+
+
+def framed(cam: dict, xy) -> bool:
+    """Every point of `xy` inside what a layout's top-down 3D camera sees (its half-height at its
+    distance, and LAYOUT_ASPECT times that across)."""
+    import math
+
+    import numpy as np
+
+    from swarmloc.experiment.recording import LAYOUT_ASPECT
+
+    half_h = cam["distance"] * math.tan(math.radians(cam["fovy"] / 2))
+    d = np.abs(np.asarray(xy, float) - np.asarray(cam["targetOffset"][:2]))
+    return bool((d[:, 0] <= half_h * LAYOUT_ASPECT).all() and (d[:, 1] <= half_h).all())

@@ -9,6 +9,7 @@ import textwrap
 
 import numpy as np
 import pytest
+from conftest import framed
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 from msgspec.structs import replace
@@ -184,7 +185,7 @@ def test_swarmloc_rerun_over_agent_processes_is_bit_for_bit(cli, tmp_path):
     # The Foxglove layout beside it frames every position the platforms took.
     assert m1["recording"]["layout"] == R.LAYOUT
     lay = json.loads((tmp_path / "r1" / R.LAYOUT).read_text())
-    assert _framed(lay["configById"]["3D!swarmloc"]["cameraState"], rebuilt.truth_array()[:, :, :2].reshape(-1, 2))
+    assert framed(lay["configById"]["3D!swarmloc"]["cameraState"], rebuilt.truth_array()[:, :, :2].reshape(-1, 2))
     plotted = {p["value"].rsplit(".", 1)[0] for p in lay["configById"]["Plot!swarmloc"]["paths"]}
     assert plotted == {R.metrics_topic("ukf-dcl", a) for a in sc.localized_ids}
     assert plotted <= {m.topic for m in R.messages(tmp_path / "r1/run.mcap")}  # series the file has
@@ -322,16 +323,6 @@ def test_netsims_deferred_recording_writes_what_an_immediate_one_writes(tmp_path
     assert len(now) > 250 and now == held
 
 
-def _framed(cam: dict, xy) -> bool:
-    """Every point of `xy` inside what a layout's top-down 3D camera sees (its half-height at its
-    distance, and LAYOUT_ASPECT times that across)."""
-    import math
-
-    half_h = cam["distance"] * math.tan(math.radians(cam["fovy"] / 2))
-    d = np.abs(np.asarray(xy, float) - np.asarray(cam["targetOffset"][:2]))
-    return bool((d[:, 0] <= half_h * R.LAYOUT_ASPECT).all() and (d[:, 1] <= half_h).all())
-
-
 def test_the_foxglove_layout_frames_the_run_from_above_with_its_scene_on():
     """`layout`: Foxglove's (and Lichtblick's) import format, a 3D panel with /scene and
     /scene/static switched on (off by default there), looking straight down, x east to the
@@ -347,7 +338,7 @@ def test_the_foxglove_layout_frames_the_run_from_above_with_its_scene_on():
         cam = panel["cameraState"]
         assert panel["topics"] == {R.SCENE: {"visible": True}, R.STATIC: {"visible": True}}
         assert cam["phi"] < 1 and cam["thetaOffset"] == 0 and cam["perspective"] and panel["followTf"] == "map"
-        assert _framed(cam, xy[np.isfinite(xy).all(axis=1)])
+        assert framed(cam, xy[np.isfinite(xy).all(axis=1)])
         assert cam["far"] > cam["distance"]
         # Tight: along one axis the view is the points' extent (at least 10 m) with only the margin.
         seen = cam["distance"] * math.tan(math.radians(cam["fovy"] / 2)) * np.array([R.LAYOUT_ASPECT, 1.0])

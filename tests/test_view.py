@@ -9,11 +9,12 @@ import struct
 import time
 
 import pytest
-from conftest import free_port
+from conftest import framed, free_port
 from mcap.records import Schema
 from mcap_protobuf.decoder import DecoderFactory
 from websockets.sync.client import connect
 
+from swarmloc.experiment import recording as R
 from swarmloc.experiment import scenario as S
 
 pytestmark = pytest.mark.slow
@@ -31,6 +32,9 @@ def test_live_view_over_websocket(cli, tmp_path):
     port = free_port()
     run = cli.start_run("live.yaml", tmp_path / "run", "--view", str(port))
     cli.wait_tick(2, run)
+    # The layout a live viewer imports is there while the run goes, framed on the start.
+    cam = json.loads((tmp_path / "run" / R.LAYOUT).read_text())["configById"]["3D!swarmloc"]["cameraState"]
+    assert framed(cam, [a.start[:2] for a in sc.world.agents])
     channels: dict[int, dict] = {}
     subscribed: dict[int, dict] = {}
     seen: dict[str, list] = {}
