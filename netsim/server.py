@@ -683,8 +683,8 @@ class NetsimServer:
             pts += [np.asarray(a.start, float)[:2].reshape(1, 2) for a in world.agents]
             pts += [np.asarray(o.position, float)[:2].reshape(1, 2) for o in world.targets]
         path = self.cfg.record.with_name(LAYOUT)
-        path.write_text(json.dumps(layout(np.concatenate(pts) if pts else np.zeros((0, 2)), self.sc.estimator.name,
-                                          self.sc.localized_ids), indent=2) + "\n")
+        path.write_text(json.dumps(layout(np.concatenate(pts), self.sc.estimator.name, self.sc.localized_ids),
+                                   indent=2) + "\n")
         return path.name
 
     def _record_faults(self) -> None:

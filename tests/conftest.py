@@ -201,9 +201,9 @@ def require_spare_cores(need: float, why: str) -> float:
     return have
 
 
-def framed(cam: dict, xy) -> bool:
-    """Every point of `xy` inside what a layout's top-down 3D camera sees (its half-height at its
-    distance, and LAYOUT_ASPECT times that across)."""
+def camera_view(cam: dict):
+    """The half-width and half-height (m) a layout's top-down 3D camera sees: its half-height at
+    its distance, and LAYOUT_ASPECT times that across."""
     import math
 
     import numpy as np
@@ -211,5 +211,12 @@ def framed(cam: dict, xy) -> bool:
     from swarmloc.experiment.recording import LAYOUT_ASPECT
 
     half_h = cam["distance"] * math.tan(math.radians(cam["fovy"] / 2))
+    return np.array([LAYOUT_ASPECT * half_h, half_h])
+
+
+def framed(cam: dict, xy) -> bool:
+    """Every point of `xy` inside what a layout's top-down 3D camera sees."""
+    import numpy as np
+
     d = np.abs(np.asarray(xy, float) - np.asarray(cam["targetOffset"][:2]))
-    return bool((d[:, 0] <= half_h * LAYOUT_ASPECT).all() and (d[:, 1] <= half_h).all())
+    return bool((d <= camera_view(cam)).all())

@@ -9,7 +9,7 @@ import textwrap
 
 import numpy as np
 import pytest
-from conftest import framed
+from conftest import camera_view, framed
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 from msgspec.structs import replace
@@ -328,8 +328,6 @@ def test_the_foxglove_layout_frames_the_run_from_above_with_its_scene_on():
     /scene/static switched on (off by default there), looking straight down, x east to the
     right, framed on every point with a margin and no more; the log panel on /faults; with the
     agents' estimator, a plot of its error (the /metrics series' `error_m`) per agent."""
-    import math
-
     r = np.random.default_rng(5)
     for xy in (r.uniform([-300, 40], [500, 90], (200, 2)), r.uniform([0, -800], [30, 900], (200, 2)),
                np.array([[12.0, -3.0]]), np.array([[np.nan, np.nan], [0.0, 0.0], [4.0, 1.0]])):
@@ -341,7 +339,7 @@ def test_the_foxglove_layout_frames_the_run_from_above_with_its_scene_on():
         assert framed(cam, xy[np.isfinite(xy).all(axis=1)])
         assert cam["far"] > cam["distance"]
         # Tight: along one axis the view is the points' extent (at least 10 m) with only the margin.
-        seen = cam["distance"] * math.tan(math.radians(cam["fovy"] / 2)) * np.array([R.LAYOUT_ASPECT, 1.0])
+        seen = camera_view(cam)
         needed = np.maximum(np.ptp(xy[np.isfinite(xy).all(axis=1)], axis=0) / 2, 5.0)
         assert (seen / needed).min() <= R.LAYOUT_MARGIN * 1.001
         assert lay["configById"]["RosOut!swarmloc"]["topicToRender"] == R.FAULTS

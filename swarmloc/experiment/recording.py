@@ -441,8 +441,6 @@ class Recorder:
 LAYOUT = "foxglove-layout.json"  # written beside run.mcap (docs/run-format.md, "The layout")
 LAYOUT_MARGIN = 1.15  # the framed box's half-sizes times this, so nothing sits on the panel's edge
 LAYOUT_ASPECT = 1.3  # the 3D panel's width over its height that the framing assumes (70 % of a wide window)
-
-
 LAYOUT_PLOTTED = 8  # agents whose error the layout's plot draws (the first, by id)
 
 
