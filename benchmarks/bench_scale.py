@@ -7,7 +7,9 @@ Usage: python benchmarks/bench_scale.py [--sizes 4 8 16 32 64] [--estimators ukf
        python benchmarks/bench_scale.py --report PATH.json   (report and plot again from a saved run)
 
 `--estimators`: `ukf-dcl:B` is UKF-DCL with `max_chain: B`, plain `ukf-dcl` is unbounded, any
-other name is that estimator with its default settings (e.g. `rdl`).
+other name is that estimator with its default settings (e.g. `rdl`); `ekf-ci` runs on the
+scenario's pose twin (`pose_twin`: range and bearing instead of ranges), with its own IL and
+UKF-CCL.
 `--in-process-from N`: swarms of N platforms and more run the same scenario, nodes, radio model
 and wire codec by swarmloc.experiment.runner.InProcessRunner in this process instead of one
 process per platform over Zenoh (the sizes whose processes would not fit in memory).
@@ -64,6 +66,8 @@ def parse_config(s: str) -> tuple[str, int | None]:
 
 
 def config_label(name: str, bound: int | None) -> str:
+    if name in POSE_TWIN:
+        return f"{name} (pose twin)"
     if name != "ukf-dcl":
         return name
     return "ukf-dcl unbounded" if bound is None else f"ukf-dcl max_chain {bound}"
@@ -76,7 +80,10 @@ def config_tag(name: str, bound: int | None) -> str:
 
 
 def scenario(n: int, name: str, bound: int | None, duration: float, seed: int = SEED) -> dict:
-    """The shape of tests/test_ukf_dcl_bounded.py and swarmloc/experiment/scenarios/swarm32.yaml."""
+    """The shape of tests/test_ukf_dcl_bounded.py and swarmloc/experiment/scenarios/swarm32.yaml.
+
+    EKF-CI runs on its pose twin (`pose_twin`): it fuses relative measurements that give a
+    neighbour's position (Goel et al. 2016, section 4), which a range alone does not."""
     rng = np.random.default_rng(seed)
     side = 40.0 * math.sqrt(n)
     pts, heads = rng.uniform(0, side, (n, 2)), rng.uniform(0, 2 * np.pi, n)
@@ -84,12 +91,31 @@ def scenario(n: int, name: str, bound: int | None, duration: float, seed: int = 
                "motion": {"kind": "random", "speed": 1.0, "turn_rate_std": 0.08}}
               for i, ((x, y), h) in enumerate(zip(pts, heads))]
     estimator = {"name": "ukf-dcl", "params": {"max_chain": bound}} if name == "ukf-dcl" else {"name": name}
-    return {"version": 1, "name": f"scale{n}-{config_tag(name, bound)}", "seed": seed,
-            "clock": {"mode": "lockstep", "dt": DT, "duration": duration}, "world": {"agents": agents},
-            "sensors": {"odometry": {"turn_rate_noise": 0.0},
-                        "range": {"noise": 1.0, "probability": 0.5, "max_per_step": n, "max_range": 80.0}},
-            "radio": {"model": "unit-disk", "range_m": 120.0},
-            "estimator": estimator, "references": ["il", "ukf-ccl"]}
+    sc = {"version": 1, "name": f"scale{n}-{config_tag(name, bound)}", "seed": seed,
+          "clock": {"mode": "lockstep", "dt": DT, "duration": duration}, "world": {"agents": agents},
+          "sensors": {"odometry": {"turn_rate_noise": 0.0},
+                      "range": {"noise": 1.0, "probability": 0.5, "max_per_step": n, "max_range": 80.0}},
+          "radio": {"model": "unit-disk", "range_m": 120.0},
+          "estimator": estimator, "references": ["il", "ukf-ccl"]}
+    return pose_twin(sc) if name in POSE_TWIN else sc
+
+
+# Estimators that run on the pose twin of the scenario, not on the scenario itself.
+POSE_TWIN = ("ekf-ci",)
+# The twin's sensing reach: a platform sees about as many others per tick as it takes ranges in
+# the scenario (0.5: pi r^2 / 1600 m^2, the density), each pair from both ends.
+TWIN_REACH_M = 16.0
+
+
+def pose_twin(sc: dict) -> dict:
+    """The same platforms, starts, walks, odometry and radio as planar-pose robots that measure
+    range and body-frame bearing (1 m, 0.05 rad) to every other within TWIN_REACH_M, every tick,
+    instead of random ranges; no landmarks. IL and UKF-CCL (joint pose UKF) are computed on it."""
+    agents = [{**a, "model": "planar-pose"} for a in sc["world"]["agents"]]
+    sensors = {"odometry": sc["sensors"]["odometry"],
+               "range_bearing": {"enabled": True, "max_range": TWIN_REACH_M, "landmarks": False,
+                                 "range_noise": sc["sensors"]["range"]["noise"], "bearing_noise": 0.05}}
+    return {**sc, "world": {**sc["world"], "agents": agents}, "sensors": sensors}
 
 
 def free_port() -> int:
@@ -207,7 +233,7 @@ def measure_in_process(n: int, name: str, bound: int | None, duration: float, ti
     A run that reaches its wall-clock limit stops at the end of a tick, reported as not finished."""
     from netsim.sim import Simulation
     from swarmloc.estimators import make_nodes
-    from swarmloc.experiment.results import compute_references, metrics
+    from swarmloc.experiment.results import compute_bound, compute_references, metrics
     from swarmloc.experiment.runner import InProcessRunner
     from swarmloc.experiment.scenario import parse
 
@@ -231,12 +257,17 @@ def measure_in_process(n: int, name: str, bound: int | None, duration: float, ti
                 "ticks_planned": planned, "finished": False, "timeout_s": timeout, "ticks_seen": len(seen),
                 "ticks_per_s_seen": rate, "error": f"did not finish in {timeout:.0f} s"}
     wall = time.perf_counter() - started
-    compute_references(sc, record)
+    reference_s = {}  # each offline reference's own time, the whole swarm in this process
+    for ref in sc.reference_names:
+        t0 = time.perf_counter()
+        compute_references(sc, record, [ref], bound=False)
+        reference_s[ref] = time.perf_counter() - t0
+    compute_bound(sc, record)
     m = metrics(record, [name, "il", "ukf-ccl"])
     m.update({"wall_time_s": wall, "ticks_per_s": m["ticks"] / wall, "radio": sim.radio_summary(),
               "agent_stats": {str(a): node.stats for a, node in nodes.items()}})
     return {"n": n, "estimator": name, "bound": bound, "duration_s": duration, "in_process": True,
-            "ticks_planned": planned, "finished": True, "total_s": wall,
+            "ticks_planned": planned, "finished": True, "total_s": wall, "reference_s": reference_s,
             **summarize(m, name)}
 
 
@@ -328,6 +359,13 @@ def markdown(results: list[dict], command: str, load0, load1, started: str, tota
              "platforms and ticks (2 dof) with its 95% bounds. Ranges used = sum of measurements_used / (used + "
              "dropped) over agents. Frames = radio deliveries per platform per tick. Larger swarms run fewer ticks, "
              "so errors compare across estimators at one N, not across N.", "",
+             *([f"`(pose twin)`: the estimator runs on the scenario's pose twin, which it needs (EKF-CI fuses "
+                "relative measurements that give a neighbour's position; a range does not): the same platforms, "
+                "starts, walks, odometry and radio as planar-pose robots, each measuring range (1 m) and bearing "
+                f"(0.05 rad) to every other within {TWIN_REACH_M:g} m every tick (about as many measurements per "
+                "platform and tick as the ranges above) instead of the ranges. Its IL and UKF-CCL columns are "
+                "computed on the twin, its NEES is of the pose (3 dof) and its ranges used are not counted.", ""]
+               if any(r.get("estimator") in POSE_TWIN for r in results) else []),
              "| N | estimator | ticks | wall s | s/tick | error m | IL error m | UKF-CCL error m | error / UKF-CCL "
              "| NEES mean [95% bounds] | ranges used | frames |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -354,7 +392,7 @@ def markdown(results: list[dict], command: str, load0, load1, started: str, tota
         lines.append(f"| {r['n']} | {b} | {r['ticks']} | {r['wall_s']:.1f} | {fmt(r['wall_s'] / r['ticks'], '.3g')} | "
                      f"{fmt(d.get('mean_error_m'), '.3f')} | {fmt(r.get('il', {}).get('mean_error_m'), '.3f')} | "
                      f"{fmt(ccl, '.3f')} | {fmt(ratio, '.3f')} | {nees_s} | "
-                     f"{fmt(None if r['fraction_used'] is None else 100 * r['fraction_used'], '.1f')}% | "
+                     f"{'-' if r['fraction_used'] is None else format(100 * r['fraction_used'], '.1f') + '%'} | "
                      f"{fmt(frames_per_agent_tick(r), '.1f')} |")
         issues = []
         if r.get("unresponsive_agents"):
@@ -372,12 +410,21 @@ def markdown(results: list[dict], command: str, load0, load1, started: str, tota
             notes.append(f"N={r['n']}, {b}: " + "; ".join(str(i) for i in issues))
     seen, ccl = set(), []
     for r in results:
-        ne = r.get("ukf-ccl", {}).get("nees") if r["finished"] else None
+        ne = r.get("ukf-ccl", {}).get("nees") if r["finished"] and r.get("estimator") not in POSE_TWIN else None
         if ne and r["n"] not in seen:
             seen.add(r["n"])
             ccl.append(f"N={r['n']}: {ne['mean']:.2f}{'' if ne['inside'] else ' (outside)'}")
     if ccl:
         lines += ["", "UKF-CCL NEES mean, same runs: " + ", ".join(ccl) + "."]
+    costs = {}
+    for r in results:
+        for alg, s in ((r.get("reference_s") or {}).items() if r["finished"] else ()):
+            twin = " (pose twin)" if r.get("estimator") in POSE_TWIN else ""
+            costs.setdefault(f"{alg.upper()}{twin}", {}).setdefault(r["n"], s / r["ticks"])
+    if costs:
+        lines += ["", "The offline references' cost, s per tick for the whole swarm in this process: "
+                  + "; ".join(f"{alg} " + ", ".join(f"N={n}: {fmt(x, '.3g')}" for n, x in sorted(by_n.items()))
+                              for alg, by_n in costs.items()) + "."]
     if notes:
         lines += ["", "Notes:", *[f"- {x}" for x in notes]]
     return "\n".join(lines) + "\n"
@@ -388,7 +435,7 @@ def plot(results: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.3))
+    fig, (ax1, ax2, ax3) = plt.subplots(1, 3, figsize=(15, 4.5))
     configs = list(dict.fromkeys(label_of(r) for r in results))
     colors = dict(zip(configs, ["C3", "C0", "C2", "C4", "C6", "C5", "C8"]))
     for c in configs:
@@ -400,28 +447,50 @@ def plot(results: list[dict], path: Path) -> None:
             ax1.plot([r["n"] for r in dnf], [1 / r["ticks_per_s_seen"] for r in dnf], "^", color=colors[c], mfc="none",
                      ms=9, label=f"{c}: did not finish (rate of ticks reached)")
         ax2.plot([r["n"] for r in ok], [est_of(r)["mean_error_m"] for r in ok], "o-", color=colors[c], label=c)
-    for alg, style in (("il", "k--"), ("ukf-ccl", "k:")):
-        by_n = {}
-        for r in results:
-            if r["finished"] and r.get(alg):
-                by_n.setdefault(r["n"], r[alg]["mean_error_m"])
-        ns = sorted(by_n)
-        ax2.plot(ns, [by_n[n] for n in ns], style, marker="s", ms=4, label={"il": "IL (dead reckoning)",
-                                                                            "ukf-ccl": "UKF-CCL (centralized)"}[alg])
+        ratio = [(r["n"], est_of(r)["mean_error_m"] / r["ukf-ccl"]["mean_error_m"]) for r in ok if r.get("ukf-ccl")]
+        ax3.plot([n for n, _ in ratio], [x for _, x in ratio], "o-", color=colors[c], label=c)
+    # The references of each scenario: the twin's are its own (other sensors, another joint state).
+    for twin, grey in ((False, "k"), (True, "0.55")):
+        for alg, style in (("il", "--"), ("ukf-ccl", ":")):
+            by_n = {}
+            for r in results:
+                if r["finished"] and r.get(alg) and (r.get("estimator") in POSE_TWIN) == twin:
+                    by_n.setdefault(r["n"], r[alg]["mean_error_m"])
+            ns = sorted(by_n)
+            if ns:
+                name = {"il": "IL (dead reckoning)", "ukf-ccl": "UKF-CCL (centralized)"}[alg]
+                ax2.plot(ns, [by_n[n] for n in ns], style, color=grey, marker="s", ms=4,
+                         label=name + (", pose twin" if twin else ""))
+    ax3.axhline(1.0, color="k", ls=":", lw=1, label="UKF-CCL of the same run")
+    ax3.axhline(1.15, color="k", ls="--", lw=0.8, alpha=0.5, label="1.15 (issue 29's bar)")
     inproc = sorted({r["n"] for r in results if r.get("in_process")})
     sizes = sorted({r["n"] for r in results})
-    for ax in (ax1, ax2):
+    for ax in (ax1, ax2, ax3):
         ax.set_xscale("log", base=2)
         ax.set_xticks(sizes, [str(n) + ("*" if n in inproc else "") for n in sizes])
         ax.set_xlabel("platforms N" + (" (* in process, else over Zenoh)" if inproc else ""))
         ax.grid(True, which="both", alpha=0.3)
+    # The offline references' cost per tick (in process only: a Zenoh run computes them in netsim).
+    for twin, grey in ((False, "k"), (True, "0.55")):
+        for alg, style in (("il", "--"), ("ukf-ccl", ":")):
+            by_n = {}
+            for r in results:
+                if r["finished"] and (r.get("reference_s") or {}).get(alg) and (r.get("estimator") in POSE_TWIN) == twin:
+                    by_n.setdefault(r["n"], r["reference_s"][alg] / r["ticks"])
+            ns = sorted(by_n)
+            if ns:
+                name = {"il": "IL", "ukf-ccl": "UKF-CCL"}[alg] + " (offline, one process)"
+                ax1.plot(ns, [by_n[n] for n in ns], style, color=grey, marker="s", ms=4,
+                         label=name + (", pose twin" if twin else ""))
     ax1.set_yscale("log")
     ax1.set_ylabel("wall s per tick, whole swarm (lockstep)")
     ax1.set_title("Cost per tick")
     ax2.set_ylabel("mean position error (m)")
     ax2.set_title("Accuracy")
-    ax1.legend(fontsize=7)
-    ax2.legend(fontsize=7)
+    ax3.set_ylabel("mean error / UKF-CCL's on the same run")
+    ax3.set_title("Against the centralized filter")
+    for ax in (ax1, ax2, ax3):
+        ax.legend(fontsize=7)
     fig.suptitle("Decentralized estimators against swarm size", fontsize=10)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -499,7 +568,7 @@ def main() -> None:
                     log(f"  {r['ticks']} ticks in {r['wall_s']:.1f} s ({r['ticks_per_s']:.3g} ticks/s; whole run "
                         f"{r['total_s']:.0f} s); error {name} {r['est']['mean_error_m']:.3f} m, "
                         f"il {r['il']['mean_error_m']:.3f}, ukf-ccl {r['ukf-ccl']['mean_error_m']:.3f}; "
-                        f"NEES {r['est']['nees']['mean']:.2f}, ranges used {r['fraction_used']:.2f}")
+                        f"NEES {r['est']['nees']['mean']:.2f}, ranges used {fmt(r['fraction_used'])}")
                 else:
                     log(f"  {r.get('error')} (ticks seen {r.get('ticks_seen')})")
     load1, total = os.getloadavg(), time.perf_counter() - t0

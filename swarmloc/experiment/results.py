@@ -207,9 +207,9 @@ def frames_from_arrays(a: dict[str, np.ndarray]) -> list[dict[int, Sensors]]:
     return out
 
 
-def compute_references(scenario, record: RunRecord, which=None) -> None:
+def compute_references(scenario, record: RunRecord, which=None, bound: bool = True) -> None:
     """The scenario's offline references from the recorded sensor stream, added in place, and
-    the run's posterior Cramér-Rao bound (`compute_bound`)."""
+    (`bound`) the run's posterior Cramér-Rao bound (`compute_bound`)."""
     from swarmloc.estimators import REGISTRY
 
     for name in scenario.reference_names if which is None else which:
@@ -218,7 +218,8 @@ def compute_references(scenario, record: RunRecord, which=None) -> None:
             ref.step(frames)
             for a in record.ids:
                 record.add_estimate(name, a, ref.estimate(a))
-    compute_bound(scenario, record)
+    if bound:
+        compute_bound(scenario, record)
 
 
 def compute_bound(scenario, record: RunRecord) -> None:
