@@ -124,9 +124,12 @@ class RdlNode(Node):
         out: list = []
         if self.first_k is None:
             self.first_k = self.k
-        # Staggered by id, so a tick carries 1/beacon_every of the swarm's beacons; all at first,
-        # so every neighbour is known from the second tick on as with a beacon a tick.
-        if self.k - self.first_k < self.beacon_every or (self.k + self.id) % self.beacon_every == 0:
+        # Staggered by id, so a tick carries 1/beacon_every of the swarm's beacons; all in the
+        # first tick, so every neighbour is known from the second tick on as with a beacon a
+        # tick (the staggered one comes within the NEIGHBOUR_TICKS the first stays known).
+        # Only the first: beaconing in each of the first beacon_every ticks made ticks 1.. carry
+        # every beacon too, a burst that cost swarm256 early ticks in real time (docs/rdl.md).
+        if self.k == self.first_k or (self.k + self.id) % self.beacon_every == 0:
             out.append(Send(Beacon(self.k, self.model.position(self.x).copy(),
                                    self.P[:self.model.position_dim, :self.model.position_dim].copy(), {}), None))
         for key, r in keyed_measurements(self.id, sensors):
