@@ -365,7 +365,7 @@ def markdown(results: list[dict], command: str, load0, load1, started: str, tota
                 f"(0.05 rad) to every other within {TWIN_REACH_M:g} m every tick (about as many measurements per "
                 "platform and tick as the ranges above) instead of the ranges. Its IL and UKF-CCL columns are "
                 "computed on the twin, its NEES is of the pose (3 dof) and its ranges used are not counted.", ""]
-               if any(r.get("estimator") in POSE_TWIN for r in results) else []),
+               if any(map(twin, results)) else []),
              "| N | estimator | ticks | wall s | s/tick | error m | IL error m | UKF-CCL error m | error / UKF-CCL "
              "| NEES mean [95% bounds] | ranges used | frames |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -410,7 +410,7 @@ def markdown(results: list[dict], command: str, load0, load1, started: str, tota
             notes.append(f"N={r['n']}, {b}: " + "; ".join(str(i) for i in issues))
     seen, ccl = set(), []
     for r in results:
-        ne = r.get("ukf-ccl", {}).get("nees") if r["finished"] and r.get("estimator") not in POSE_TWIN else None
+        ne = r.get("ukf-ccl", {}).get("nees") if r["finished"] and not twin(r) else None
         if ne and r["n"] not in seen:
             seen.add(r["n"])
             ccl.append(f"N={r['n']}: {ne['mean']:.2f}{'' if ne['inside'] else ' (outside)'}")
@@ -419,8 +419,7 @@ def markdown(results: list[dict], command: str, load0, load1, started: str, tota
     costs = {}
     for r in results:
         for alg, s in ((r.get("reference_s") or {}).items() if r["finished"] else ()):
-            twin = " (pose twin)" if r.get("estimator") in POSE_TWIN else ""
-            costs.setdefault(f"{alg.upper()}{twin}", {}).setdefault(r["n"], s / r["ticks"])
+            costs.setdefault(alg.upper() + (" (pose twin)" if twin(r) else ""), {}).setdefault(r["n"], s / r["ticks"])
     if costs:
         lines += ["", "The offline references' cost, s per tick for the whole swarm in this process: "
                   + "; ".join(f"{alg} " + ", ".join(f"N={n}: {fmt(x, '.3g')}" for n, x in sorted(by_n.items()))
@@ -428,6 +427,27 @@ def markdown(results: list[dict], command: str, load0, load1, started: str, tota
     if notes:
         lines += ["", "Notes:", *[f"- {x}" for x in notes]]
     return "\n".join(lines) + "\n"
+
+
+def twin(r: dict) -> bool:
+    """Whether the run was of the scenario's pose twin."""
+    return r.get("estimator") in POSE_TWIN
+
+
+def reference_lines(ax, results: list[dict], value, names: dict) -> None:
+    """One line per reference (IL dashed, UKF-CCL dotted) and scenario (the twin's grey: its
+    references are its own, other sensors and another joint state): `value(r, alg)` of the first
+    finished run of each N, where it is not None."""
+    for is_twin, grey in ((False, "k"), (True, "0.55")):
+        for alg, style in (("il", "--"), ("ukf-ccl", ":")):
+            by_n = {}
+            for r in results:
+                if r["finished"] and twin(r) == is_twin and (v := value(r, alg)) is not None:
+                    by_n.setdefault(r["n"], v)
+            ns = sorted(by_n)
+            if ns:
+                ax.plot(ns, [by_n[n] for n in ns], style, color=grey, marker="s", ms=4,
+                        label=names[alg] + (", pose twin" if is_twin else ""))
 
 
 def plot(results: list[dict], path: Path) -> None:
@@ -449,18 +469,8 @@ def plot(results: list[dict], path: Path) -> None:
         ax2.plot([r["n"] for r in ok], [est_of(r)["mean_error_m"] for r in ok], "o-", color=colors[c], label=c)
         ratio = [(r["n"], est_of(r)["mean_error_m"] / r["ukf-ccl"]["mean_error_m"]) for r in ok if r.get("ukf-ccl")]
         ax3.plot([n for n, _ in ratio], [x for _, x in ratio], "o-", color=colors[c], label=c)
-    # The references of each scenario: the twin's are its own (other sensors, another joint state).
-    for twin, grey in ((False, "k"), (True, "0.55")):
-        for alg, style in (("il", "--"), ("ukf-ccl", ":")):
-            by_n = {}
-            for r in results:
-                if r["finished"] and r.get(alg) and (r.get("estimator") in POSE_TWIN) == twin:
-                    by_n.setdefault(r["n"], r[alg]["mean_error_m"])
-            ns = sorted(by_n)
-            if ns:
-                name = {"il": "IL (dead reckoning)", "ukf-ccl": "UKF-CCL (centralized)"}[alg]
-                ax2.plot(ns, [by_n[n] for n in ns], style, color=grey, marker="s", ms=4,
-                         label=name + (", pose twin" if twin else ""))
+    reference_lines(ax2, results, lambda r, alg: (r.get(alg) or {}).get("mean_error_m"),
+                    {"il": "IL (dead reckoning)", "ukf-ccl": "UKF-CCL (centralized)"})
     ax3.axhline(1.0, color="k", ls=":", lw=1, label="UKF-CCL of the same run")
     ax3.axhline(1.15, color="k", ls="--", lw=0.8, alpha=0.5, label="1.15 (issue 29's bar)")
     inproc = sorted({r["n"] for r in results if r.get("in_process")})
@@ -470,18 +480,9 @@ def plot(results: list[dict], path: Path) -> None:
         ax.set_xticks(sizes, [str(n) + ("*" if n in inproc else "") for n in sizes])
         ax.set_xlabel("platforms N" + (" (* in process, else over Zenoh)" if inproc else ""))
         ax.grid(True, which="both", alpha=0.3)
-    # The offline references' cost per tick (in process only: a Zenoh run computes them in netsim).
-    for twin, grey in ((False, "k"), (True, "0.55")):
-        for alg, style in (("il", "--"), ("ukf-ccl", ":")):
-            by_n = {}
-            for r in results:
-                if r["finished"] and (r.get("reference_s") or {}).get(alg) and (r.get("estimator") in POSE_TWIN) == twin:
-                    by_n.setdefault(r["n"], r["reference_s"][alg] / r["ticks"])
-            ns = sorted(by_n)
-            if ns:
-                name = {"il": "IL", "ukf-ccl": "UKF-CCL"}[alg] + " (offline, one process)"
-                ax1.plot(ns, [by_n[n] for n in ns], style, color=grey, marker="s", ms=4,
-                         label=name + (", pose twin" if twin else ""))
+    # The offline references' cost (in process only: a Zenoh run computes them in netsim).
+    reference_lines(ax1, results, lambda r, alg: (r.get("reference_s") or {}).get(alg, 0) / r["ticks"] or None,
+                    {"il": "IL (offline, one process)", "ukf-ccl": "UKF-CCL (offline, one process)"})
     ax1.set_yscale("log")
     ax1.set_ylabel("wall s per tick, whole swarm (lockstep)")
     ax1.set_title("Cost per tick")

@@ -119,10 +119,11 @@ def main() -> None:
                      f"{c:.3f}{'' if clo <= c <= chi else ' (outside)'} | {m - c:+.3f} |")
     est, ccl = np.array(per_seed[name]), np.array(per_seed["ukf-ccl"])
     diff = est - ccl
+    _, lo1, hi1 = pooled(runs[0][name][a.skip_ticks:], dof)
     lines += ["", f"Over the {M} runs: {name} {est.mean():.3f} (runs {est.min():.3f} to {est.max():.3f}, std "
               f"{est.std(ddof=1):.3f}); UKF-CCL {ccl.mean():.3f} ({ccl.min():.3f} to {ccl.max():.3f}, std "
               f"{ccl.std(ddof=1):.3f}); the pooled band's half-width for one run is "
-              f"{(pooled(runs[0][name][a.skip_ticks:], dof)[2] - pooled(runs[0][name][a.skip_ticks:], dof)[1]) / 2:.3f}. "
+              f"{(hi1 - lo1) / 2:.3f}. "
               f"{name} - UKF-CCL, seed by seed: mean {diff.mean():+.3f}, std {diff.std(ddof=1):.3f}, "
               f"{int((diff > 0).sum())} of {M} above; {name} / UKF-CCL {np.mean(est / ccl):.3f}.", ""]
     # The mean of M run averages against the band a consistent filter's would keep, with the
