@@ -232,6 +232,20 @@ def test_delivery_tags_bind_receiver_number_and_frame_under_the_receivers_key():
 # ---------------------------------------------------------------------------- the daemon
 
 
+def test_the_mac_is_hmac_sha256_for_every_key_and_frame_size():
+    # auth.mac keeps the GIL (hmac.digest releases it on every call); the wire needs the same
+    # bytes, for keys and messages around SHA-256's block and the size where hashlib lets go.
+    import hmac
+
+    rng = np.random.default_rng(3)
+    for key_len in (0, 1, 32, 63, 64, 65, 200):
+        key = rng.bytes(key_len)
+        for size in (0, 1, 55, 64, 500, 2047, 2048, 40_000):
+            msg = rng.bytes(size)
+            assert auth.mac(key, msg) == hmac.digest(key, msg, "sha256"), (key_len, size)
+            assert auth.mac(key, msg) == hmac.digest(key, msg, "sha256")  # its cached pads, again
+
+
 class Attachment:
     def __init__(self, data: bytes):
         self.data = data

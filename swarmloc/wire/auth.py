@@ -43,6 +43,7 @@ finding 8).
 from __future__ import annotations
 
 import base64
+import hashlib
 import hmac
 import json
 import os
@@ -108,9 +109,36 @@ def member_of(sid: int) -> str:
     return "operator" if sid >= OPERATOR else f"agent-{sid}"
 
 
+_IPAD = bytes(x ^ 0x36 for x in range(256))
+_OPAD = bytes(x ^ 0x5C for x in range(256))
+_PADS: dict[bytes, tuple] = {}  # key -> SHA-256 states after its inner and outer pad (RFC 2104)
+
+
+def mac(key: bytes, msg: bytes) -> bytes:
+    """HMAC-SHA256 of `msg` under `key`, the same 32 bytes as `hmac.digest(key, msg, "sha256")`.
+
+    Not that function because it releases the GIL around every call, however small the
+    message: in an agent host (32 agents, a thread each, and Zenoh's callback threads) getting
+    it back waited behind the other threads, 16 ms of wall time a MAC on average in a swarm256
+    run, on every frame sealed or checked (docs/benchmarks.md, "The GIL and the MAC"). A hash
+    object's copy, and its update under 2 KiB, keep the GIL; the two pads are hashed once per
+    key, which also halves the CPU of a MAC (about 1.2 against 2.3 us here)."""
+    pads = _PADS.get(key)
+    if pads is None:
+        k = (hashlib.sha256(key).digest() if len(key) > 64 else key).ljust(64, b"\0")
+        if len(_PADS) >= 4096:  # members x generations of one swarm are far fewer: a bound only
+            _PADS.clear()
+        pads = _PADS[key] = (hashlib.sha256(k.translate(_IPAD)), hashlib.sha256(k.translate(_OPAD)))
+    inner = pads[0].copy()
+    inner.update(msg)
+    outer = pads[1].copy()
+    outer.update(inner.digest())
+    return outer.digest()
+
+
 def _derive(master: bytes, swarm: str, what: bytes, member: str, epoch: int) -> bytes:
-    return hmac.digest(master, b"swarmloc/member/2/" + what + b"/" + swarm.encode() + b"\0" + member.encode() + b"\0"
-                       + bytes([epoch]), "sha256")
+    return mac(master, b"swarmloc/member/2/" + what + b"/" + swarm.encode() + b"\0" + member.encode() + b"\0"
+                       + bytes([epoch]))
 
 
 def _b64(b: bytes) -> str:
@@ -392,10 +420,10 @@ class Sealer:
         self.counter = max(self.counter + 1, time.time_ns() // 1000)
         ring = self.keyring
         link = _link(self.sender, to)
-        mac = ring.mac_key(link) if link is not None else None
-        if mac is not None:
+        link_key = ring.mac_key(link) if link is not None else None
+        if link_key is not None:
             header = HEADER.pack(self.sender, to, self.counter, ring.members.get(link, 0))
-            tag = hmac.digest(mac, _msg(self._swarm, key.encode(), frame, header), "sha256")[:TAG_BYTES]
+            tag = mac(link_key, _msg(self._swarm, key.encode(), frame, header))[:TAG_BYTES]
             return frame + header + tag + MAGIC
         signer = ring.signer(self.name)
         if signer is None:
@@ -481,11 +509,10 @@ class Opener:
             link = _link(sender, receiver)
             if link is None or link in ring.revoked:
                 raise AuthError("bad-tag", f"no MAC key between {sender} and {receiver}")
-            mac = ring.mac_key(link)
-            if mac is None or ring.members.get(link) != epoch:
+            link_key = ring.mac_key(link)
+            if link_key is None or ring.members.get(link) != epoch:
                 raise AuthError("unknown-key", f"{link}, generation {epoch}")
-            if not hmac.compare_digest(body, hmac.digest(mac, _msg(self._swarm, key.encode(), data[:end], header),
-                                                         "sha256")[:TAG_BYTES]):
+            if not hmac.compare_digest(body, mac(link_key, _msg(self._swarm, key.encode(), data[:end], header))[:TAG_BYTES]):
                 raise AuthError("bad-tag", f"sender {sender}")
             return sender
         public = ring.public(name)
@@ -584,7 +611,7 @@ def delivery_tag(keyring: Keyring, receiver: int, attachment: bytes, data: bytes
     key = keyring.mac_key(member_of(receiver))
     if key is None:
         raise ValueError(f"this key file holds no key of agent {receiver}")
-    return hmac.digest(key, _delivery_msg(keyring, receiver, attachment, data), "sha256")[:TAG_BYTES]
+    return mac(key, _delivery_msg(keyring, receiver, attachment, data))[:TAG_BYTES]
 
 
 def check_delivery(keyring: Keyring, receiver: int, attachment: bytes, data: bytes) -> bytes:
@@ -594,7 +621,7 @@ def check_delivery(keyring: Keyring, receiver: int, attachment: bytes, data: byt
     head, tag = attachment[:-TAG_BYTES], attachment[-TAG_BYTES:]
     key = keyring.mac_key(member_of(receiver))
     if key is None or not hmac.compare_digest(
-            tag, hmac.digest(key, _delivery_msg(keyring, receiver, head, data), "sha256")[:TAG_BYTES]):
+            tag, mac(key, _delivery_msg(keyring, receiver, head, data))[:TAG_BYTES]):
         raise AuthError("bad-delivery", f"to {receiver}")
     return head
 
