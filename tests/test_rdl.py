@@ -130,6 +130,30 @@ def test_an_undeliverable_request_is_given_up_and_counted():
     assert_same(a.P, P, "P after a lost request")
 
 
+def test_a_wait_in_real_time_holds_the_next_tick_and_is_given_up_within_it():
+    from swarmloc.estimators.rdl.node import WAIT_TICKS
+    from swarmloc.node import Timer
+
+    assert 0.5 < WAIT_TICKS < 1  # a round trip is two hops; one boundary at most (docs/rdl.md)
+    a = RdlNode(1, np.zeros(2), P0, MODEL)
+    a.synchronous = False
+    a.beacons.hear(2, wire.messages.Beacon(0, np.array([10.0, 0.0]), np.eye(2), {}))
+    a.step(Sensors(0, 0.0, OdometryMsg(0.5, 1.0, 0.0, 0.1, 0.05), []))
+    out = a.step(Sensors(1, 0.5, OdometryMsg(0.5, 1.0, 0.0, 0.1, 0.05), [RangeMsg(2, 9.0, 0.5)]))
+    timers = [s for s in out if isinstance(s, Timer)]
+    assert len(timers) == 1 and timers[0].delay == pytest.approx(WAIT_TICKS * 0.5)
+    x, P = a.x.copy(), a.P.copy()
+    # The next tick's frame comes during the wait: held, not run, not skipped.
+    assert a.step(Sensors(2, 1.0, OdometryMsg(0.5, 1.0, 0.0, 0.1, 0.05), [])) == []
+    assert a.k == 1 and a.deferred is not None and a.drops["tick-skipped"] == 0
+    a.on_timer(timers[0].tag, 0.5 + timers[0].delay)  # no commit: the measurement is given up
+    assert a.drops["tick-skipped"] == 0 and a.drops["no-commit"] == 1
+    assert a.waiting is None and a.stats["waits_expired"] == 1 and a.stats["measurements_dropped"] == 1
+    assert a.k == 2 and a.deferred is None  # the held tick ran when the wait ended
+    assert_same(a.x, x + 0.5 * np.array([1.0, 0.0]), "x: tick 2's motion alone, no half of a pair")
+    assert np.all(np.linalg.eigvalsh(a.P - P) > 0), "P: tick 2's process noise added, nothing taken"
+
+
 RUNS, N = 3, 10
 
 
