@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import hmac
-import io
 import os
 import platform
 import statistics

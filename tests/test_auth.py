@@ -229,9 +229,6 @@ def test_delivery_tags_bind_receiver_number_and_frame_under_the_receivers_key():
         auth.check_delivery(hub.for_member("agent-4"), 3, att + tag, b"frame")
 
 
-# ---------------------------------------------------------------------------- the daemon
-
-
 def test_the_mac_is_hmac_sha256_for_every_key_and_frame_size():
     # auth.mac keeps the GIL (hmac.digest releases it on every call); the wire needs the same
     # bytes, for keys and messages around SHA-256's block and the size where hashlib lets go.
@@ -244,6 +241,9 @@ def test_the_mac_is_hmac_sha256_for_every_key_and_frame_size():
             msg = rng.bytes(size)
             assert auth.mac(key, msg) == hmac.digest(key, msg, "sha256"), (key_len, size)
             assert auth.mac(key, msg) == hmac.digest(key, msg, "sha256")  # its cached pads, again
+
+
+# ---------------------------------------------------------------------------- the daemon
 
 
 class Attachment:

@@ -119,8 +119,8 @@ def mac(key: bytes, msg: bytes) -> bytes:
 
     Not that function because it releases the GIL around every call, however small the
     message: in an agent host (32 agents, a thread each, and Zenoh's callback threads) getting
-    it back waited behind the other threads, 16 ms of wall time a MAC on average in a swarm256
-    run, on every frame sealed or checked (docs/benchmarks.md, "The GIL and the MAC"). A hash
+    it back waited behind the other threads, 5 to 16 ms of wall time a MAC on average in a
+    lockstep swarm256 run, on every frame sealed or checked (docs/benchmarks.md, "The GIL and the MAC"). A hash
     object's copy, and its update under 2 KiB, keep the GIL; the two pads are hashed once per
     key, which also halves the CPU of a MAC (about 1.2 against 2.3 us here)."""
     pads = _PADS.get(key)
@@ -138,7 +138,7 @@ def mac(key: bytes, msg: bytes) -> bytes:
 
 def _derive(master: bytes, swarm: str, what: bytes, member: str, epoch: int) -> bytes:
     return mac(master, b"swarmloc/member/2/" + what + b"/" + swarm.encode() + b"\0" + member.encode() + b"\0"
-                       + bytes([epoch]))
+               + bytes([epoch]))
 
 
 def _b64(b: bytes) -> str:

@@ -37,10 +37,10 @@ NEIGHBOUR_TICKS = 3
 WAIT_TICKS = 0.8
 """Real time: how long a's wait for b's commit may last, in ticks. Under one tick, so a wait
 spans at most one tick boundary: it holds at most the next tick's sensor frame (run when it
-ends), and leaves a fifth of a tick for the rest of that frame's lag. Not half a tick: a pair's round trip is
-two radio hops, and at swarm256's load a hop takes 125-185 ms (median), so half a tick gave up
-a quarter to a half of the ranges half-way, each leaving the pair's two sides from different
-updates (docs/benchmarks.md, "RDL's wait in real time")."""
+ends), and leaves a fifth of a tick for the rest of that frame's lag. Not half a tick: a pair's
+round trip is two radio hops, and at swarm256's load a hop takes 125-185 ms (median), so half a
+tick gave up a quarter to a half of the ranges half-way, each leaving the pair's two sides from
+different updates (docs/benchmarks.md, "RDL's wait in real time")."""
 MAX_LATER = 256  # frames held while we wait
 
 
