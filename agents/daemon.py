@@ -152,6 +152,8 @@ class AgentDaemon:
         self.speed, self.clock_t, self.clock_wall = 1.0, 0.0, time.monotonic()  # real time: the last clock frame
         self.ros2 = None  # swarmloc.wire.ros2.Ros2Publisher
         self.recorder = None  # swarmloc.experiment.recording.Recorder
+        self._unacked = False  # inputs handled since our last `done`
+        self.wake_at = 0.0  # monotonic time of the next turn due without an input (service())
 
     # ---------------------------------------------------------------- zenoh plumbing
 
@@ -304,52 +306,71 @@ class AgentDaemon:
     # ---------------------------------------------------------------- loop
 
     def run(self) -> None:
-        """Handle inputs until stopped (signal, stop clock, or stop())."""
-        unacked = False  # inputs handled since our last `done`
-        while not self._stop.is_set():
-            # Polled sources first, every turn: a busy inbox must not starve a flight controller.
+        """Handle inputs until stopped (signal, stop clock, or stop()): this agent's own loop,
+        for a process of one agent (a host serves several from one loop: agents/host.py)."""
+        item = None
+        while self.service(item):
+            try:  # timed, so a signal handler gets its turn in this thread
+                item = self.inbox.get(timeout=max(0.0, self.wake_at - time.monotonic()))
+            except queue.Empty:
+                item = None
+
+    def service(self, item=None) -> bool:
+        """One turn of the agent: `item` (taken from the inbox by the driver) and everything
+        queued behind it handled, due timers fired, the batch acknowledged; never blocks. Then
+        `wake_at` says when the agent next needs a turn if nothing arrives (a timer, a polled
+        source); the inbox's `wake` hook says when something does. False once stopped."""
+        while True:
+            if self._stop.is_set():
+                return False
+            # Polled sources first, every input: a busy inbox must not starve a flight controller.
             now = time.monotonic()
             for source in self.sources:
                 for body in source.ready(now):
-                    unacked |= self._input("frame", body, source)
+                    self._unacked |= self._input("frame", body, source)
             self._fc_poll(now)
             self._time_sync(now)
-            if unacked and self.inbox.empty():
-                # One estimate and one `done` for everything that was queued together: fewer
-                # frames, and fewer wake-ups of netsim, which acts on the last `done` only.
-                unacked = False
-                self._publish_estimate()
-                # Always acknowledge in lockstep (and before netsim's first clock says which
-                # mode this is, and in direct mode), even a rejected input: lockstep must not
-                # wait on us for nothing. Under a real-time clock netsim waits for nobody and
-                # reads only the tick of a `done` (who keeps up): one a tick, not one per radio
-                # frame (at 256 agents 6,000 a tick, as many as the deliveries, each sealed and
-                # opened).
-                if self.node.synchronous or self.clock_k < 0 or self.node.k != self._done_k:
-                    self._done_k = self.node.k
-                    done = self._seal(wire.encode(Done(self.node.k, self.consumed, self.sent, self.commands),
-                                                   self.node.id, self.handled), self.keys.done(self.node.id), self.hub)
-                    self._pub_done.put(done)
-                    if self.recorder is not None:
-                        self._record(self.keys.done(self.node.id), done)
-                        self.recorder.end_tick(self.node.k, 0.0)  # flushes when one is due
-            wait = min([0.5, *(s.wait(time.monotonic()) for s in self.sources), self._fc_wait(time.monotonic())])
-            if not self.node.synchronous and (due := self.timers.next_due()) is not None:
-                wait = min(wait, max(0.0, due - self._now()))
-            try:  # timed, so a signal handler gets its turn in this thread
-                kind, data, attachment = self.inbox.get(timeout=wait)
-            except queue.Empty:
-                due = self.timers.next_due()
-                if self.node.synchronous or due is None or due > self._now():
-                    continue
-                kind, data, attachment = "timers", None, None
+            if item is None:
+                try:
+                    item = self.inbox.get(0)
+                except queue.Empty:
+                    due = self.timers.next_due()
+                    if self.node.synchronous or due is None or due > self._now():
+                        break
+                    item = ("timers", None, None)
+            kind, data, attachment = item
+            item = None
             if kind == "stop":
-                break
+                return False
             if kind == "stats":
                 self._reply_stats(data)
                 data = None  # release the query: Zenoh sends the final reply when it is freed
                 continue
-            unacked |= self._input(kind, data, attachment)
+            self._unacked |= self._input(kind, data, attachment)
+        if self._unacked:
+            # One estimate and one `done` for everything that was queued together: fewer
+            # frames, and fewer wake-ups of netsim, which acts on the last `done` only.
+            self._unacked = False
+            self._publish_estimate()
+            # Always acknowledge in lockstep (and before netsim's first clock says which mode
+            # this is, and in direct mode), even a rejected input: lockstep must not wait on us
+            # for nothing. Under a real-time clock netsim waits for nobody and reads only the
+            # tick of a `done` (who keeps up): one a tick, not one per radio frame (at 256
+            # agents 6,000 a tick, as many as the deliveries, each sealed and opened).
+            if self.node.synchronous or self.clock_k < 0 or self.node.k != self._done_k:
+                self._done_k = self.node.k
+                done = self._seal(wire.encode(Done(self.node.k, self.consumed, self.sent, self.commands),
+                                               self.node.id, self.handled), self.keys.done(self.node.id), self.hub)
+                self._pub_done.put(done)
+                if self.recorder is not None:
+                    self._record(self.keys.done(self.node.id), done)
+                    self.recorder.end_tick(self.node.k, 0.0)  # flushes when one is due
+        now = time.monotonic()
+        wait = min([0.5, *(s.wait(now) for s in self.sources), self._fc_wait(now)])
+        if not self.node.synchronous and (due := self.timers.next_due()) is not None:
+            wait = min(wait, max(0.0, due - self._now()))
+        self.wake_at = now + wait
+        return True
 
     def _input(self, kind: str, data, attachment) -> bool:
         """Hand one input to the node and send what it answers; True if it is to be acknowledged."""
@@ -798,6 +819,15 @@ def open_daemon(node: Node, cfg: AgentConfig) -> AgentDaemon:
 
 def run_daemon(daemon: AgentDaemon) -> None:
     """An opened daemon's loop, said in the log first, until stopped; the session closed after."""
+    announce(daemon)
+    try:
+        daemon.run()
+    finally:
+        daemon.close()
+
+
+def announce(daemon: AgentDaemon) -> None:
+    """What an agent about to run listens to, in the log."""
     node, cfg, keys = daemon.node, daemon.cfg, daemon.keys
     radio = [keys.radio_rx(node.id), *([keys.radio_rx(BROADCAST)] if cfg.direct else [])]
     inputs = [*((keys.sensors(node.id),) if cfg.sensor_keys is None else cfg.sensor_keys), *(s.name for s in daemon.sources)]
@@ -815,10 +845,6 @@ def run_daemon(daemon: AgentDaemon) -> None:
                     "can speak for this swarm (docs/security.md)", node.id)
     if not cfg.publish_swarm:
         log.info("agent %s: outputs.swarm is false: no estimate on %s", node.id, keys.estimate(node.id))
-    try:
-        daemon.run()
-    finally:
-        daemon.close()
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,6 +1,6 @@
 """An agent host: several agents in one OS process, each exactly the agent a process of its
-own would be (its node, id, keys, Zenoh session and Zenoh keys, its checkpoint), on a thread
-of its own. On the wire nothing tells them apart from one agent per process.
+own would be (its node, id, keys, Zenoh session and Zenoh keys, its checkpoint), all served by
+one loop. On the wire nothing tells them apart from one agent per process.
 
 Why: an agent process is about 50 MB, nearly all of it the interpreter, numpy, scipy and
 Zenoh's runtime, which agents in one process share (a Zenoh session costs well under a
@@ -9,8 +9,9 @@ the 6 GB a swarm of 256 may take on one host.
 
 Isolation: a node's exception is caught by its daemon (counted `node-error`, as in a process of
 its own); an error that ends an agent's loop ends that agent only, reported on stdout as
-`crashed ID`, and its hostmates go on. A whole-process death (a segfault, an out-of-memory
-kill) takes every agent of the host, as it would take a companion computer.
+`crashed ID`, and its hostmates go on. What they share is the loop's time: an agent's long
+turn (a slow step of its node) delays its hostmates' turns. A whole-process death (a segfault,
+an out-of-memory kill) takes every agent of the host, as it would take a companion computer.
 
 Two front ends: `swarmloc run --agents-per-process K` (below) and, on a companion computer,
 `swarmloc agent --config A --config B` (agents/cli/deploy.py), whose agents are built from their
@@ -30,12 +31,14 @@ from __future__ import annotations
 
 import argparse
 import logging
+import queue
 import sys
 import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from agents.daemon import AgentConfig, AgentDaemon, OpenError, load_node, open_daemon, run_daemon
+from agents.daemon import AgentConfig, AgentDaemon, OpenError, announce, load_node, open_daemon
 from swarmloc.node import NodeSpec
 from swarmloc.process import exit_on_sigterm
 from swarmloc.wire import auth
@@ -45,57 +48,112 @@ log = logging.getLogger("swarmloc.host")
 
 @dataclass
 class Hosted:
-    """One agent of the host: how to build it, and its daemon and thread while it runs."""
+    """One agent of the host: how to build it, and its daemon while it runs."""
 
     aid: int
     spec: Path | NodeSpec  # a file as `swarmloc run` writes it, or the node of an agent configuration
     cfg: AgentConfig
     daemon: AgentDaemon | None = None
-    thread: threading.Thread | None = None
     killed: bool = False  # stopped by `kill`, waiting for `start`
-    ended: threading.Event = field(default_factory=threading.Event)  # its loop ended by itself
+    ended: threading.Event = field(default_factory=threading.Event)  # its daemon closed (by itself, a kill, a crash)
+
+    @property
+    def name(self) -> str:
+        return f"agent-{self.aid}"
 
 
 class Host:
+    """The agents of one process, served by one loop: an agent's turn (AgentDaemon.service)
+    comes when its inbox has something or a timer or polled source of its is due. One loop and
+    not a thread each: with a thread each, every frame woke its agent's thread, which then had
+    to win the GIL from its hostmates; one loop takes what arrived together in one wake-up, for
+    about a seventh less CPU in swarm256's hosts (docs/benchmarks.md#one-loop-per-host)."""
+
     def __init__(self, agents: list[Hosted], report):
         self.agents = {a.aid: a for a in agents}
         self.report = report  # report(line, why): one line to the launcher per event, and the reason in words
         self.changed = threading.Event()  # an agent ended or was killed: the main loop looks again
         self._lock = threading.Lock()
         self.stdin_closed = False  # the launcher is gone: so is the reason to wait for a restart
+        # What the loop is told: an agent with something queued (a Hosted), one to take on
+        # ("add", Hosted), the end (None).
+        self._ready: queue.SimpleQueue = queue.SimpleQueue()
+        self._loop: threading.Thread | None = None
 
     def start(self, aid: int) -> None:
         a = self.agents[aid]
         with self._lock:
-            if a.thread is not None and a.thread.is_alive():
+            if a.daemon is not None and not a.ended.is_set():
                 return
             a.killed = False
             a.ended.clear()
             # Afresh: a restarted agent is a new one that resumes its checkpoint.
             node = load_node(a.spec, aid) if isinstance(a.spec, Path) else a.spec.build()
             a.daemon = open_daemon(node, a.cfg)
-            a.thread = threading.Thread(target=self._run, args=(a, a.daemon), name=f"agent-{aid}", daemon=True)
-            a.thread.start()
+            if self._loop is None:
+                self._loop = threading.Thread(target=self._serve, name="agents", daemon=True)
+                self._loop.start()
+            self._ready.put(("add", a))
 
-    def _run(self, a: Hosted, daemon: AgentDaemon) -> None:
+    def _serve(self) -> None:
+        live: dict[int, Hosted] = {}
+        while True:
+            now = time.monotonic()
+            wake = min((a.daemon.wake_at for a in live.values()), default=now + 0.5)
+            turn: dict[int, Hosted] = {}
+            try:
+                item = self._ready.get(timeout=min(0.5, max(0.0, wake - now)))
+                while True:  # everything told so far goes in this round, each agent once
+                    if item is None:
+                        return
+                    if isinstance(item, tuple):  # ("add", a): its inbox may hold frames already
+                        a = item[1]
+                        live[a.aid] = a
+                        a.daemon.inbox.wake = lambda a=a: self._ready.put(a)
+                        threading.current_thread().name = a.name
+                        announce(a.daemon)
+                        turn[a.aid] = a
+                    elif live.get(item.aid) is item:
+                        turn[item.aid] = item
+                    item = self._ready.get_nowait()
+            except queue.Empty:
+                pass
+            now = time.monotonic()
+            for a in live.values():
+                if a.daemon.wake_at <= now:
+                    turn[a.aid] = a
+            for a in turn.values():
+                self._turn(a, live)
+
+    def _turn(self, a: Hosted, live: dict[int, Hosted]) -> None:
+        daemon = a.daemon
+        # The log's thread name says whose turn it is (`-v` lines read agent-ID, as they did
+        # when each agent had a thread).
+        threading.current_thread().name = a.name
         try:
-            run_daemon(daemon)
+            going = daemon.service()
         except Exception as exc:
             log.exception("agent %s: its loop failed; the host's other agents go on", a.aid)
             if not a.killed:
                 self.report(f"crashed {a.aid}", f"agent {a.aid}: its loop failed ({type(exc).__name__}: {exc}); the "
                             "other agents of this process go on")
-        finally:
-            a.ended.set()
-            self.changed.set()
+            going = False
+        if going:
+            return
+        del live[a.aid]
+        try:
+            daemon.close()
+        except Exception:
+            log.exception("agent %s: closing it failed", a.aid)
+        a.ended.set()
+        self.changed.set()
 
     def kill(self, aid: int) -> None:
         a = self.agents[aid]
         a.killed = True
         if a.daemon is not None:
             a.daemon.stop()
-        if a.thread is not None:
-            a.thread.join(5.0)
+            a.ended.wait(5.0)
         log.info("agent %s killed", aid)
         self.changed.set()
 
@@ -126,9 +184,13 @@ class Host:
         for a in self.agents.values():
             if a.daemon is not None:
                 a.daemon.stop()
+        deadline = time.monotonic() + 2.0
         for a in self.agents.values():
-            if a.thread is not None:
-                a.thread.join(2.0)
+            if a.daemon is not None:
+                a.ended.wait(max(0.0, deadline - time.monotonic()))
+        if self._loop is not None:
+            self._ready.put(None)
+            self._loop.join(2.0)
 
 
 def _read_commands(host: Host, stream) -> None:

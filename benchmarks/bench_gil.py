@@ -1,6 +1,7 @@
 """Benchmark: what a per-frame call costs beside busy threads, when it lets go of the GIL.
 
-An agent host runs 32 agents on a thread each, beside Zenoh's callback threads; netsim a few.
+An agent host runs Zenoh's callback threads (one per subscription: about 130 for 32 agents)
+beside its loop (when measured, a thread per agent); netsim a few.
 A C call that releases the GIL (to hash, sign or write) has to get it back, and with many
 threads wanting it that wait can be milliseconds, whatever the call itself costs. This script
 times each call alone and beside N threads doing small Python work (a loop, then a 0.5 ms sleep,

@@ -2,12 +2,15 @@
 
 import threading
 import time
+from dataclasses import replace
 
 import numpy as np
+import pytest
 import zenoh
 from conftest import free_port
 
 from agents.daemon import AgentConfig, AgentDaemon
+from agents.host import Host, Hosted
 from netsim.sim import Simulation
 from swarmloc import wire
 from swarmloc.experiment import scenario as S
@@ -54,16 +57,35 @@ def test_lockstep_timers_fire_at_the_first_tick_at_or_after_their_time():
     assert all(n.fired == nodes[1].fired for n in nodes.values())  # deterministic
 
 
-def test_real_time_timers_fire_in_wall_time_without_any_input():
+class _Built:
+    """A Hosted's spec: the node itself."""
+
+    def __init__(self, node):
+        self.node = node
+
+    def build(self):
+        return self.node
+
+
+@pytest.mark.parametrize("driver", ["own loop", "host"])
+def test_real_time_timers_fire_in_wall_time_without_any_input(driver):
     """An agent daemon (real Zenoh session, no netsim) in real time: the timer set on a sensor
-    frame fires by itself, after its delay of modelled time at the clock's speed."""
+    frame fires by itself, after its delay of modelled time at the clock's speed; the same for
+    an agent of a host, whose one loop serves a hostmate that sets no timer."""
     port = free_port()
-    node = Alarm(1, 0.4)
-    daemon = AgentDaemon(node, AgentConfig(swarm="timers", mode="peer", listen=(f"tcp/127.0.0.1:{port}",),
-                                           connect=(), exit_on_stop=False))
-    daemon.open()
-    loop = threading.Thread(target=daemon.run, daemon=True)
-    loop.start()
+    node, mate = Alarm(1, 0.4), Alarm(2, 0.4)
+    cfg = AgentConfig(swarm="timers", mode="peer", listen=(f"tcp/127.0.0.1:{port}",), connect=(), exit_on_stop=False)
+    if driver == "host":
+        host = Host([Hosted(1, _Built(node), cfg), Hosted(2, _Built(mate), replace(cfg, listen=()))],
+                    report=lambda line, why: None)
+        host.start(1)
+        host.start(2)
+        daemon = host.agents[1].daemon
+    else:
+        daemon = AgentDaemon(node, cfg)
+        daemon.open()
+        loop = threading.Thread(target=daemon.run, daemon=True)
+        loop.start()
     conf = zenoh.Config.from_json5(wire.zenoh_config("peer", (), (f"tcp/127.0.0.1:{port}",)))
     session = zenoh.open(conf)
     try:
@@ -83,10 +105,14 @@ def test_real_time_timers_fire_in_wall_time_without_any_input():
             time.sleep(0.01)
         waited = time.monotonic() - started
     finally:
-        daemon.stop()
-        loop.join(5)
+        if driver == "host":
+            host.stop()
+        else:
+            daemon.stop()
+            loop.join(5)
+            daemon.close()
         session.close()
-        daemon.close()
     assert [f[0] for f in node.fired][:2] == ["late", "again"]  # "replaced" may follow before the loop stops
     assert waited >= 0.4 / 2.0  # 0.4 s of modelled time at speed 2
     assert node.fired[0][2] >= 1.5 + 0.4  # the node is told the modelled time it fired at
+    assert mate.fired == []

@@ -115,7 +115,7 @@ def agent(
     id: Optional[int] = typer.Option(None, "--id", help="this agent's id (required without --config)"),
     config: Optional[list[Path]] = typer.Option(None, "--config", help="the whole agent from a configuration file "
                                                 "(YAML, docs/deploy.md#configuration): no scenario, no other option "
-                                                "but -v; repeatable: several agents in this process, a thread each"),
+                                                "but -v; repeatable: several agents in this process, served by one loop"),
     check_config: bool = typer.Option(False, "--check-config", help="with --config: validate the files, print a "
                                       "summary of each agent and exit"),
     scenario: Optional[str] = typer.Option(None, "--scenario", help="take start point, model and filter settings from a scenario"),

@@ -60,7 +60,7 @@ def netsim_args(record: bool, view: int | None, ros2_domain: int | None = None, 
 
 
 PerProcessOpt = typer.Option(1, "--agents-per-process", callback=in_range(1), metavar="K",
-                             help="run K agents in each agent process, each on a thread of its own with its own "
+                             help="run K agents in each agent process, served by one loop, each with its own "
                                   "session, keys and checkpoint: the same on the wire, a fraction of the memory")
 JsonOpt = typer.Option(False, "--json", help="print metrics.json on stdout at the end instead of the summary tables "
                        "(the progress and messages go to stderr)")

@@ -118,7 +118,7 @@ def mac(key: bytes, msg: bytes) -> bytes:
     """HMAC-SHA256 of `msg` under `key`, the same 32 bytes as `hmac.digest(key, msg, "sha256")`.
 
     Not that function because it releases the GIL around every call, however small the
-    message: in an agent host (32 agents, a thread each, and Zenoh's callback threads) getting
+    message: in an agent host (then 32 agents on a thread each, and Zenoh's callback threads) getting
     it back waited behind the other threads, 5 to 16 ms of wall time a MAC on average in a
     lockstep swarm256 run, on every frame sealed or checked (docs/benchmarks.md, "The GIL and the MAC"). A hash
     object's copy, and its update under 2 KiB, keep the GIL; the two pads are hashed once per

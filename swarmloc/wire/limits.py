@@ -7,6 +7,7 @@ from __future__ import annotations
 import queue
 import threading
 from collections import Counter, OrderedDict
+from collections.abc import Callable
 
 from swarmloc.wire import auth
 from swarmloc.wire.schema import MAX_WIRE_BYTES
@@ -43,6 +44,9 @@ class Inbox:
         self.dropped_bytes = 0
         self.dropped_share = 0  # of `dropped`: a sender over its share while there was room
         self.peak_bytes = 0
+        # Called after every item queued: an agent host's one loop learns which of its agents
+        # has something (agents/host.py); a driver that blocks on get() needs none.
+        self.wake: Callable[[], object] | None = None
 
     def put(self, item, size: int = 0, force: bool = False, sender: int | None = None) -> bool:
         """Queue `item` (`size` bytes of payload); False if it was dropped. `force`: a control
@@ -64,6 +68,8 @@ class Inbox:
             self.bytes += size
             self.peak_bytes = max(self.peak_bytes, self.bytes)
         self._items.put((item, size, sender))
+        if self.wake is not None:
+            self.wake()
         return True
 
     def get(self, timeout: float | None = None):
