@@ -67,7 +67,7 @@ class Host:
     comes when its inbox has something or a timer or polled source of its is due. One loop and
     not a thread each: with a thread each, every frame woke its agent's thread, which then had
     to win the GIL from its hostmates; one loop takes what arrived together in one wake-up, for
-    about a seventh less CPU in swarm256's hosts (docs/benchmarks.md#one-loop-per-host)."""
+    about a seventh less CPU in swarm256's hosts (docs/benchmarks.md#one-loop-per-host-2026-12-08)."""
 
     def __init__(self, agents: list[Hosted], report):
         self.agents = {a.aid: a for a in agents}
