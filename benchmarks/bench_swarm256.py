@@ -71,10 +71,15 @@ def cpu_s(pid: int) -> float | None:
         return None
 
 
-def role(pid: int) -> str:
+def role(pid: int, launcher: int) -> str | None:
+    """What a process of the run is; None while it cannot tell yet (a child between its fork and
+    its exec still shows the launcher's command line: once counted as the launcher, a host's
+    whole CPU went to the launcher's column)."""
+    if pid == launcher:
+        return "launcher"
     cmd = cmdline(pid)
     return "netsim" if " -m netsim " in cmd else "agents" if (" -m agents.host " in cmd or " -m agents.daemon " in cmd) \
-        else "launcher" if " -m agents run " in cmd else "other"
+        else None if " -m agents run " in cmd else "other"
 
 
 def pct(xs, q):
@@ -103,7 +108,7 @@ def measure(scenario: Path, steps: int, dt: float, k: int, tmp: Path, timeout: f
             for p_ in pids:
                 c = cpu_s(p_)
                 if c is not None:
-                    cpu[p_] = (cpu[p_][0] if p_ in cpu else role(p_), c)
+                    cpu[p_] = (cpu[p_][0] if p_ in cpu and cpu[p_][0] is not None else role(p_, launcher.pid), c)
             if mb > peak_mb:
                 peak_mb, peak_procs = mb, len(pids)
             time.sleep(0.25)
@@ -121,8 +126,8 @@ def measure(scenario: Path, steps: int, dt: float, k: int, tmp: Path, timeout: f
     arr = clock.arrivals
     out.update({"total_s": ended - started, "cpu_s": (ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime),
                 "peak_rss_mb": peak_mb, "processes": peak_procs, "clock_frames": len(arr),
-                "cpu_s_by_role": {r_: round(sum(c for rr, c in cpu.values() if rr == r_), 1)
-                                  for r_ in sorted({rr for rr, _ in cpu.values()})}})
+                "cpu_s_by_role": {r_ or "unknown": round(sum(c for rr, c in cpu.values() if rr == r_), 1)
+                                  for r_ in sorted({rr for rr, _ in cpu.values()}, key=str)}})
     if arr:
         out["start_to_tick0_s"] = arr[0] - started
         ticks = np.array(arr[:steps + 1])
